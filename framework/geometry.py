@@ -1,0 +1,95 @@
+"""Rotation helpers shared by rasterizers, deformers, correctors and bodies (quaternions are wxyz)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
+    """Normalise [..., 4]; a zero quaternion maps to the identity rather than NaN."""
+    norm = q.norm(dim=-1, keepdim=True)
+    identity = torch.zeros_like(q)
+    identity[..., 0] = 1.0
+    return torch.where(norm > eps, q / norm.clamp_min(eps), identity)
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:
+    """[..., 4] wxyz (any norm) -> [..., 3, 3]."""
+    w, x, y, z = quat_normalize(q).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
+
+
+def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product a * b of [..., 4] wxyz quaternions (rotation b first, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def rotmat_to_quat(R: Tensor) -> Tensor:
+    """[..., 3, 3] rotation -> [..., 4] wxyz with w >= 0; picks the best-conditioned of four formulas (as pytorch3d),
+    so values and gradients stay finite for every rotation, 180 degrees included."""
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    q_abs = torch.sqrt(
+        torch.stack(
+            [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
+        ).clamp_min(1e-12)
+    )  # [..., 4] = 2 * |(w, x, y, z)|
+    candidates = torch.stack(
+        [
+            torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
+            torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], dim=-1),
+            torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], dim=-1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
+        ],
+        dim=-2,
+    ) / (2 * q_abs[..., None].clamp_min(0.1))  # [..., 4 (formula), 4]
+    best = q_abs.argmax(dim=-1)  # [...]
+    q = candidates.gather(-2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = F.normalize(q, dim=-1)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def axis_angle_to_rotmat(aa: Tensor) -> Tensor:
+    """[..., 3] axis-angle -> [..., 3, 3] (Rodrigues), with finite values and gradients at zero angle."""
+    theta2 = (aa * aa).sum(-1, keepdim=True)  # [..., 1]
+    small = theta2 < 1e-8
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(theta2_safe)
+    # sin(t)/t and (1-cos(t))/t^2 with Taylor expansions near zero
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2_safe)
+    x, y, z = aa.unbind(-1)
+    zero = torch.zeros_like(x)
+    Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*aa.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(Kx)
+    return eye + a[..., None] * Kx + b[..., None] * (Kx @ Kx)
+
+
+def rotmat_to_axis_angle(R: Tensor) -> Tensor:
+    """[..., 3, 3] -> [..., 3] through the quaternion (stable near 0 and pi)."""
+    q = rotmat_to_quat(R)
+    xyz = q[..., 1:]
+    sin_half = xyz.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(sin_half, q[..., :1])
+    scale = torch.where(sin_half > 1e-8, angle / sin_half.clamp_min(1e-12), 2 / q[..., :1].clamp_min(1e-12))
+    return xyz * scale

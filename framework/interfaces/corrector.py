@@ -1,0 +1,31 @@
+"""Appearance correctors: pose-dependent residuals on canonical Gaussians (the paper's F_a)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from torch import Tensor, nn
+
+from framework.types import Gaussians
+
+
+class Corrector(nn.Module, ABC):
+    """Maps (target pose, per-Gaussian code) to corrected canonical Gaussians.
+
+    Contract: positions are never changed; the pose is gradient-stopped by the corrector itself; opacity and scale
+    residuals are added in raw (logit / log) space; the rotation residual is a quaternion applied as dr * r.
+    `enabled` is switched by the stage callback: a disabled corrector returns its input unchanged.
+    """
+
+    registry_name: str = ""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.enabled = True
+
+    def bind(self, num_pose_features: int) -> None:  # noqa: B027 - optional hook
+        """Called once the body's pose size is known, before training; build layers here if they depend on it."""
+
+    @abstractmethod
+    def forward(self, gaussians: Gaussians, pose: Tensor) -> Gaussians:
+        """gaussians: canonical; pose: [P] flattened pose features of the target frame."""

@@ -1,0 +1,44 @@
+"""Multi-view datasets: calibrated cameras, images, masks and (for bodies) per-frame poses."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import torch
+from torch import Tensor
+
+from framework.types import Cameras, FrameBatch
+
+
+class MultiViewDataset(torch.utils.data.Dataset, ABC):
+    """One split (train / novel_view / novel_pose) of a multi-view sequence; item i is one (frame, view) sample.
+
+    Attributes every dataset sets:
+      cameras: Cameras of every view in the rig (C = number of views).
+      frame_ids: list[int] of the frames in this split (indices into the whole sequence).
+      num_frames_total: frames in the whole sequence (pose refinement tables are this long).
+      body_name: registry name of the body model the poses belong to, or None for static scenes.
+      bounds: Tensor [2, 3], a box holding the subject (canonical for bodies, world for static scenes).
+    """
+
+    registry_name: str = ""
+    cameras: Cameras
+    frame_ids: list[int]
+    num_frames_total: int
+    body_name: str | None
+    bounds: Tensor
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def __getitem__(self, index: int) -> FrameBatch:
+        """A FrameBatch with B = 1."""
+
+    def poses(self) -> Tensor | None:
+        """[num_frames_total, J, 3] stored poses of the whole sequence (None for static scenes)."""
+        return None
+
+    def initial_points(self) -> Tensor | None:
+        """[M, 3] points to initialise Gaussians from when there is no body (None: sample inside `bounds`)."""
+        return None

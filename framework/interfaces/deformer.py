@@ -1,0 +1,28 @@
+"""Deformers: canonical Gaussians + bone transforms -> posed Gaussians (the paper's LBS step)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+from torch import Tensor, nn
+
+from framework.types import Gaussians
+
+
+@dataclass
+class DeformOutput:
+    posed: Gaussians  # world-space Gaussians (means, quats, log_scales posed; SH rotated)
+    weights: Tensor | None  # [N, J] blend weights used, None for rigid/identity deformers
+    aux: dict[str, Tensor] = field(default_factory=dict)  # extra tensors for losses, e.g. "weight_std" [N]
+
+
+class Deformer(nn.Module, ABC):
+    registry_name: str = ""
+
+    def bind(self, body: object | None, bounds: Tensor | None) -> None:  # noqa: B027 - optional hook
+        """Called once before training with the body model (or None) and the canonical box [2, 3]."""
+
+    @abstractmethod
+    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None) -> DeformOutput:
+        """bone_transforms: [J, 4, 4] rest-to-posed skinning transforms (None for static scenes)."""

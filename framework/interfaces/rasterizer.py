@@ -1,0 +1,58 @@
+"""The rasterizer contract: every backend renders the same function.
+
+Semantics shared by all backends (the conformance suite in `framework.testing` checks them):
+- Projection: p = R x + t (OpenCV). A Gaussian is culled (radius 0) when z <= near or z >= far.
+- Covariance: Sigma = R S S^T R^T from the normalised quaternion (wxyz) and scales; EWA splatting with the
+  perspective Jacobian at the mean, where x/z and y/z are clamped to the field of view widened by 0.3 * tan(fov/2)
+  on each side (as in 3DGS/gsplat); then 0.3 px^2 is added to the 2D covariance diagonal (low-pass filter).
+- Pixel (i, j) has its centre at (j + 0.5, i + 0.5). For a pair (Gaussian g, pixel p):
+  sigma = 0.5 * d^T Sigma2d^-1 d with d = mean2d - p; alpha = min(0.999, opacity * exp(-sigma));
+  the pair contributes only if sigma >= 0 and alpha >= 1/255.
+- Compositing: front to back by camera-space z. T starts at 1; for each contributing pair next_T = T * (1 - alpha);
+  if next_T <= 1e-4 the pixel is finished and this pair is NOT added; otherwise the pair adds T * alpha * (colour, 1, z)
+  and T = next_T. rgb = sum + T_final * background; alpha = 1 - T_final; depth = sum of T*alpha*z (not normalised).
+- Colour: real SH up to `sh_degree` (3DGS constants) evaluated at the direction from the camera centre to the mean,
+  plus 0.5, clamped at 0 from below.
+- radii: ceil of the half-extent (pixels) of the screen box holding every pixel where alpha >= 1/255 could hold;
+  0 for culled Gaussians (behind the camera, degenerate covariance, or the box entirely outside the image).
+- means2d: projected centres [C, N, 2]; backends arrange for `.grad` to be populated by backward (densification).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from torch import Tensor
+
+from framework.types import Cameras, RenderOutput
+
+NEAR_PLANE = 0.01
+FAR_PLANE = 1e10
+EPS2D = 0.3
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.999
+TRANSMITTANCE_MIN = 1e-4
+
+
+class Rasterizer(ABC):
+    """A differentiable Gaussian splatting backend."""
+
+    #: Set by the registry decorator.
+    registry_name: str = ""
+
+    @abstractmethod
+    def render(
+        self,
+        means: Tensor,  # [N, 3] world positions
+        quats: Tensor,  # [N, 4] wxyz, need not be normalised
+        scales: Tensor,  # [N, 3] activated (positive) scales
+        opacities: Tensor,  # [N] activated opacities in [0, 1]
+        sh: Tensor,  # [N, K, 3] SH coefficients, K >= (sh_degree + 1) ** 2
+        cameras: Cameras,
+        *,
+        sh_degree: int,
+        background: Tensor | None = None,  # [3]; black when None
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> RenderOutput:
+        """Render every camera; differentiable in all Gaussian tensors."""

@@ -1,0 +1,138 @@
+"""Tensor dataclasses passed between components.
+
+Shapes are written as comments; `C` cameras, `N` Gaussians, `J` joints, `K = (sh_degree + 1) ** 2` SH coefficients.
+Conventions: world-to-camera matrices are OpenCV (x right, y down, z forward); quaternions are wxyz and need not be
+normalised; pixel (row i, column j) has its centre at image coordinates (j + 0.5, i + 0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+
+def num_sh_coeffs(degree: int) -> int:
+    """Number of real SH coefficients up to and including `degree`."""
+    return (degree + 1) ** 2
+
+
+@dataclass
+class Gaussians:
+    """Gaussian parameters in their raw (unactivated) form, as they are optimised.
+
+    Canonical Gaussians live in the rest pose; a deformer returns posed ones of the same type.
+    """
+
+    means: Tensor  # [N, 3] world (or canonical) positions
+    quats: Tensor  # [N, 4] wxyz, unnormalised
+    log_scales: Tensor  # [N, 3]
+    opacity_logits: Tensor  # [N]
+    sh: Tensor  # [N, K, 3]
+    latents: Tensor | None = None  # [N, 9] learnable appearance codes
+    skin_weights: Tensor | None = None  # [N, J] baked blend weights (None while a weight field supplies them)
+
+    @property
+    def num(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def scales(self) -> Tensor:
+        return torch.exp(self.log_scales)  # [N, 3]
+
+    @property
+    def opacities(self) -> Tensor:
+        return torch.sigmoid(self.opacity_logits)  # [N]
+
+    @property
+    def sh_degree_max(self) -> int:
+        return int(round(self.sh.shape[1] ** 0.5)) - 1
+
+    def replace(self, **changes: Tensor | None) -> Gaussians:
+        return replace(self, **changes)
+
+    def index(self, idx: Tensor) -> Gaussians:
+        """A subset of Gaussians (boolean mask or index tensor along N)."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = None if v is None else v[idx]
+        return Gaussians(**out)
+
+
+@dataclass
+class Cameras:
+    """A batch of pinhole cameras sharing one image size."""
+
+    K: Tensor  # [C, 3, 3] intrinsics in pixels
+    world_to_cam: Tensor  # [C, 4, 4] OpenCV convention
+    width: int
+    height: int
+
+    @property
+    def num(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.K.device
+
+    def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> Cameras:
+        return Cameras(self.K.to(device, dtype), self.world_to_cam.to(device, dtype), self.width, self.height)
+
+    def cam_to_world(self) -> Tensor:
+        return torch.linalg.inv(self.world_to_cam)  # [C, 4, 4]
+
+    def centers(self) -> Tensor:
+        """Camera centres in world coordinates, [C, 3]."""
+        R = self.world_to_cam[:, :3, :3]
+        t = self.world_to_cam[:, :3, 3]
+        return -(R.transpose(1, 2) @ t.unsqueeze(-1)).squeeze(-1)
+
+    def index(self, idx: int | slice | Tensor) -> Cameras:
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1)
+        return Cameras(self.K[idx], self.world_to_cam[idx], self.width, self.height)
+
+
+@dataclass
+class RenderOutput:
+    """What every rasterizer backend returns."""
+
+    rgb: Tensor  # [C, H, W, 3] composited colour over the background
+    alpha: Tensor  # [C, H, W, 1] accumulated opacity (= a render with white colours on black)
+    depth: Tensor | None  # [C, H, W, 1] accumulated camera-space z, sum_i w_i z_i (divide by alpha for expected depth)
+    means2d: Tensor  # [C, N, 2] projected centres in pixels; `.grad` is filled after backward (densification)
+    radii: Tensor  # [C, N] integer pixel radius of the 3-sigma footprint, 0 where culled
+
+
+@dataclass
+class FrameBatch:
+    """One training/evaluation sample: images of one frame from one or more cameras (B views)."""
+
+    image: Tensor  # [B, H, W, 3] float in [0, 1]
+    mask: Tensor  # [B, H, W] float in [0, 1], foreground
+    boundary: Tensor  # [B, H, W] float, 0 within n pixels of the silhouette, 1 elsewhere (M_b)
+    cameras: Cameras  # C = B
+    frame: Tensor  # [B] long, frame index into the sequence (pose refinement looks it up)
+    pose: Tensor | None = None  # [B, J, 3] axis-angle joint rotations of the body model (None for static scenes)
+    root: Tensor | None = None  # [B, 4, 4] root transform applied after the body model (EasyMocap R(Rh), Th)
+    betas: Tensor | None = None  # [B, S] shape parameters where the body model uses them
+    view: Tensor | None = None  # [B] long, camera index in the rig
+
+    def to(self, device: torch.device | str) -> FrameBatch:
+        def mv(x):
+            return None if x is None else x.to(device)
+
+        return FrameBatch(
+            image=self.image.to(device),
+            mask=self.mask.to(device),
+            boundary=self.boundary.to(device),
+            cameras=self.cameras.to(device),
+            frame=self.frame.to(device),
+            pose=mv(self.pose),
+            root=mv(self.root),
+            betas=mv(self.betas),
+            view=mv(self.view),
+        )

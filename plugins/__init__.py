@@ -1,0 +1,1 @@
+"""Built-in components. Each subpackage registers one kind through the splatrig.plugins entry points."""
