@@ -7,18 +7,36 @@ dependency must produce one sentence that names the thing and the fix, never a t
 from __future__ import annotations
 
 import difflib
+import functools
 from collections.abc import Callable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass
+from importlib import metadata
 from typing import Any, Generic, TypeVar
+
+from framework.errors import SplatrigError
 
 T = TypeVar("T")
 
 # Set by framework.plugins while a plugin module is imported, so each entry knows which distribution added it.
-current_origin: ContextVar[str] = ContextVar("splatrig_plugin_origin", default="__main__")
+# Unset (None) when a module registers outside plugin discovery, e.g. a test imports a built-in directly; the origin
+# is then inferred from the distribution that installed the class's top-level package.
+current_origin: ContextVar[str | None] = ContextVar("splatrig_plugin_origin", default=None)
 
 
-class RegistryError(Exception):
+@functools.lru_cache(maxsize=1)
+def _package_distributions() -> dict[str, list[str]]:
+    return dict(metadata.packages_distributions())  # scans every installed distribution once (~0.2 s)
+
+
+def origin_of(cls: type) -> str:
+    """Where a class registered outside plugin discovery comes from: its distribution, else its module."""
+    top = cls.__module__.split(".")[0]
+    dists = _package_distributions().get(top)
+    return dists[0] if dists else cls.__module__
+
+
+class RegistryError(SplatrigError):
     """Base class of every error a registry raises; its message is meant for the user as it is."""
 
 
@@ -59,6 +77,9 @@ class Registry(Generic[T]):
         self.kind = kind
         self.base = base
         self._entries: dict[str, Entry[T]] = {}
+        # name -> message of a rejected second registration; selecting that name fails with it, since which of the
+        # two classes a run would get depends on import order.
+        self._conflicts: dict[str, str] = {}
 
     def register(self, name: str, requires: Callable[[], str | None] | None = None) -> Callable[[type[T]], type[T]]:
         """Class decorator. `requires` returns None when usable, else the reason it is not."""
@@ -69,21 +90,29 @@ class Registry(Generic[T]):
                     f"{self.kind} '{name}': {getattr(cls, '__qualname__', cls)!r} is not a subclass of "
                     f"{self.base.__module__}.{self.base.__qualname__}; derive it from that interface."
                 )
-            origin = current_origin.get()
+            origin = current_origin.get() or origin_of(cls)
             if name in self._entries:
                 old = self._entries[name]
+                # The same class seen again (a module re-imported or reloaded) replaces its entry.
                 same = old.cls.__module__ == cls.__module__ and old.cls.__qualname__ == cls.__qualname__
                 if not same:
-                    raise DuplicateComponentError(
+                    msg = (
                         f"{self.kind} '{name}' is registered twice: by {old.cls.__module__}.{old.cls.__qualname__} "
                         f"(from {old.origin}) and by {cls.__module__}.{cls.__qualname__} (from {origin}). "
-                        f"Rename one of them."
+                        f"Rename one of them, or uninstall the plugin that should not provide it."
                     )
+                    self._conflicts[name] = msg
+                    raise DuplicateComponentError(msg)
             self._entries[name] = Entry(name=name, cls=cls, origin=origin, requires=requires)
             cls.registry_name = name  # type: ignore[attr-defined]
             return cls
 
         return decorator
+
+    def unregister(self, name: str) -> None:
+        """Forget `name`; plugin discovery uses it to undo what a module registered before its import failed."""
+        self._entries.pop(name, None)
+        self._conflicts.pop(name, None)
 
     def names(self) -> list[str]:
         return sorted(self._entries)
@@ -95,10 +124,15 @@ class Registry(Generic[T]):
         return iter(self._entries[n] for n in self.names())
 
     def entry(self, name: str) -> Entry[T]:
+        """The entry registered as `name`; plugins are discovered first if that has not happened yet."""
         if name not in self._entries:
             from framework import plugins  # late: plugins imports this module
 
-            raise UnknownComponentError(self._unknown_message(name, plugins.failure_summary()))
+            plugins.load_plugins()  # once per process; a no-op afterwards
+            if name not in self._entries:
+                raise UnknownComponentError(self._unknown_message(name, plugins.failure_summary()))
+        if name in self._conflicts:
+            raise DuplicateComponentError(self._conflicts[name])
         return self._entries[name]
 
     def get(self, name: str) -> type[T]:

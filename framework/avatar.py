@@ -1,0 +1,154 @@
+"""Composes canonical Gaussians -> corrector -> deformer -> rasterizer, the one forward pass every experiment runs.
+
+Static scenes use the same path with no body, the `none` corrector and the `identity` deformer, so `static_fit` and
+`paper_full` share every line of training code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from framework.interfaces import BodyModel, Corrector, Deformer, Rasterizer
+from framework.types import FrameBatch, Gaussians, RenderOutput
+
+# Per-Gaussian tensors the densifier edits; sh is kept as DC + rest so they can have their own learning rates.
+GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "latents", "skin_weights")
+
+
+class GaussianParams(nn.Module):
+    """Canonical Gaussians as named parameters; a densifier may replace any of them with a resized one."""
+
+    def __init__(self, gaussians: Gaussians) -> None:
+        super().__init__()
+        tensors = {
+            "means": gaussians.means,
+            "quats": gaussians.quats,
+            "log_scales": gaussians.log_scales,
+            "opacity_logits": gaussians.opacity_logits,
+            "sh0": gaussians.sh[:, :1],
+            "shN": gaussians.sh[:, 1:],
+        }
+        if gaussians.latents is not None:
+            tensors["latents"] = gaussians.latents
+        if gaussians.skin_weights is not None:
+            tensors["skin_weights"] = gaussians.skin_weights
+        self.params = nn.ParameterDict(
+            {k: nn.Parameter(v.detach().clone().float().contiguous(), requires_grad=k != "skin_weights")
+             for k, v in tensors.items()}  # fmt: skip
+        )
+
+    @property
+    def num(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def gaussians(self) -> Gaussians:
+        p = self.params
+        return Gaussians(
+            means=p["means"],
+            quats=p["quats"],
+            log_scales=p["log_scales"],
+            opacity_logits=p["opacity_logits"],
+            sh=torch.cat([p["sh0"], p["shN"]], dim=1),
+            latents=p["latents"] if "latents" in p else None,
+            skin_weights=p["skin_weights"] if "skin_weights" in p else None,
+        )
+
+    def resize_to(self, state_dict: dict[str, Tensor], prefix: str) -> None:
+        """Give every parameter the shape stored in a checkpoint before it is loaded (densification changes N)."""
+        for key, param in self.params.items():
+            stored = state_dict.get(f"{prefix}params.{key}")
+            if stored is not None and stored.shape != param.shape:
+                param.data = torch.zeros(stored.shape, dtype=param.dtype, device=param.device)
+        for key, stored in state_dict.items():
+            if key.startswith(f"{prefix}params."):
+                name = key[len(f"{prefix}params.") :]
+                if name not in self.params:
+                    self.params[name] = nn.Parameter(torch.zeros_like(stored), requires_grad=name != "skin_weights")
+
+
+class PoseRefiner(nn.Module):
+    """Learnable per-frame residuals on joint rotations and one shared residual on rest joint positions.
+
+    Joint positions are shared across frames: a person's bone lengths do not change between frames, and a
+    per-frame offset could explain away appearance instead of fixing calibration of the skeleton.
+    """
+
+    def __init__(self, num_frames: int, num_joints: int, enabled: bool = True) -> None:
+        super().__init__()
+        self.enabled = enabled
+        self.pose_residual = nn.Parameter(torch.zeros(num_frames, num_joints, 3))  # [F, J, 3]
+        self.joint_residual = nn.Parameter(torch.zeros(num_joints, 3))  # [J, 3]
+
+    def forward(self, frame: Tensor, pose: Tensor, rest_joints: Tensor) -> tuple[Tensor, Tensor]:
+        """frame [B], pose [B, J, 3] -> refined pose [B, J, 3], joints [B, J, 3]."""
+        joints = rest_joints.expand(pose.shape[0], -1, -1)
+        if not self.enabled:
+            return pose, joints
+        return pose + self.pose_residual[frame], joints + self.joint_residual
+
+
+@dataclass
+class AvatarOutput:
+    render: RenderOutput
+    aux: dict[str, Tensor]
+    canonical: Gaussians  # uncorrected canonical Gaussians (what densification looks at)
+    posed: Gaussians
+
+
+class Avatar(nn.Module):
+    """The whole model. One camera batch of one frame per call (the paper trains on one image per step)."""
+
+    def __init__(
+        self,
+        gaussians: GaussianParams,
+        rasterizer: Rasterizer,
+        corrector: Corrector,
+        deformer: Deformer,
+        body: BodyModel | None = None,
+        pose_refiner: PoseRefiner | None = None,
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        super().__init__()
+        self.gaussians = gaussians
+        self.rasterizer = rasterizer
+        self.corrector = corrector
+        self.deformer = deformer
+        self.body = body
+        self.pose_refiner = pose_refiner
+        self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
+
+    def bone_transforms(self, batch: FrameBatch) -> tuple[Tensor | None, Tensor | None]:
+        """World-space skinning transforms [J, 4, 4] and the pose features [P] for the corrector."""
+        if self.body is None or batch.pose is None:
+            return None, None
+        pose = batch.pose[:1]
+        joints = self.body.rest_joints.unsqueeze(0)
+        if self.pose_refiner is not None:
+            pose, joints = self.pose_refiner(batch.frame[:1], pose, self.body.rest_joints.unsqueeze(0))
+        transforms = self.body.bone_transforms(pose, joints)[0]  # [J, 4, 4]
+        if batch.root is not None:
+            transforms = batch.root[0] @ transforms
+        return transforms, pose[0].reshape(-1)
+
+    def forward(self, batch: FrameBatch, sh_degree: int) -> AvatarOutput:
+        canonical = self.gaussians.gaussians()
+        transforms, pose_features = self.bone_transforms(batch)
+        corrected = canonical
+        if pose_features is not None:
+            corrected = self.corrector(canonical, pose_features)
+        deformed = self.deformer(corrected, transforms)
+        posed = deformed.posed
+        render = self.rasterizer.render(
+            posed.means,
+            posed.quats,
+            torch.exp(posed.log_scales),
+            torch.sigmoid(posed.opacity_logits),
+            posed.sh,
+            batch.cameras,
+            sh_degree=sh_degree,
+            background=self.background,
+        )
+        return AvatarOutput(render=render, aux=deformed.aux, canonical=canonical, posed=posed)

@@ -1,0 +1,51 @@
+"""Turn config nodes into components through the registries.
+
+A component node is `{name: <registry name>, **constructor kwargs}`; `name: null` means "no component" (e.g. no body
+for a static scene). Errors name the config group and list the options, so a typo never surfaces from deep inside
+Hydra or a constructor.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from framework.errors import SplatrigError
+from framework.plugins import load_plugins
+from framework.registry import RegistryError, registry
+
+
+class ConfigError(SplatrigError):
+    """A config value that cannot be turned into a component; the message says which key and how to fix it."""
+
+
+def node_kwargs(node: DictConfig | dict[str, Any] | None) -> tuple[str | None, dict[str, Any]]:
+    if node is None:
+        return None, {}
+    data = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node)
+    assert isinstance(data, dict)
+    name = data.pop("name", None)
+    return name, data
+
+
+def build_component(kind: str, node: DictConfig | dict[str, Any] | None, group: str | None = None, **extra: Any) -> Any:
+    """Build the `kind` component described by `node` (None when its name is null)."""
+    load_plugins()
+    group = group or kind
+    name, kwargs = node_kwargs(node)
+    if name is None:
+        return None
+    kwargs.update(extra)
+    reg = registry(kind)
+    try:
+        cls = reg.get(name)
+    except RegistryError as exc:
+        raise ConfigError(f"config group '{group}': {exc}") from None
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise ConfigError(
+            f"config group '{group}' ({kind} '{name}'): {exc}. Check the keys in conf/{group}/{name}.yaml or your "
+            f"command-line overrides against {cls.__module__}.{cls.__qualname__}."
+        ) from None

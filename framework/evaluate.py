@@ -1,0 +1,142 @@
+"""Evaluation: PSNR / SSIM / LPIPS on whole images (background included), per split, per frame.
+
+`python -m framework.evaluate ckpt=PATH [splits=[novel_view,novel_pose]] [metrics=[psnr,ssim,lpips_alex]]`
+writes `per_frame.csv` and `summary.md` and prints the summary table. Also run at the end of training.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from framework.build import build_component
+from framework.errors import SplatrigError
+from framework.plugins import format_table, load_plugins
+from framework.registry import METRICS
+
+
+def _metric_objects(names: list[str]) -> dict[str, Any]:
+    load_plugins()
+    metrics = {}
+    for name in names:
+        entry = METRICS.entry(name)
+        reason = entry.unavailable_reason()
+        if reason is not None:
+            print(f"[splatrig] metric '{name}' skipped: {reason}", file=sys.stderr)
+            continue
+        metrics[name] = entry.cls()
+    return metrics
+
+
+@torch.no_grad()
+def evaluate_module(module, datamodule, splits: list[str], metric_names: list[str], out_dir: Path,
+                    logger=None, step: int = 0, save_images: int = 4) -> dict[str, float]:  # fmt: skip
+    """Returns {"<split>/<metric>": mean}; writes per_frame.csv, summary.md and a few render|gt|error PNGs."""
+    import imageio.v3 as iio
+
+    from framework.lightning.data import collate_frames
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    metrics = _metric_objects(metric_names)
+    module.eval()
+    rows: list[dict[str, Any]] = []
+    summary: dict[str, float] = {}
+    for split in splits:
+        try:
+            dataset = datamodule.split(split)
+        except SplatrigError as exc:
+            print(f"[splatrig] split '{split}' skipped: {exc}", file=sys.stderr)
+            continue
+        values: dict[str, list[float]] = {m: [] for m in metrics}
+        image_every = max(len(dataset) // max(save_images, 1), 1)
+        for i in tqdm(range(len(dataset)), desc=f"eval {split}", unit="img", leave=False):
+            batch = collate_frames([dataset[i]]).to(module.device)
+            rgb = module.render_batch(batch).render.rgb.clamp(0, 1)
+            row: dict[str, Any] = {"split": split, "frame": int(batch.frame[0]),
+                                   "view": -1 if batch.view is None else int(batch.view[0])}  # fmt: skip
+            for name, metric in metrics.items():
+                v = float(metric(rgb, batch.image)[0])
+                values[name].append(v)
+                row[name] = v
+            rows.append(row)
+            if i % image_every == 0 and save_images:
+                err = (rgb[0] - batch.image[0]).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4
+                grid = torch.cat([rgb[0], batch.image[0], err.clamp(0, 1)], dim=1)
+                iio.imwrite(out_dir / f"{split}_{i:05d}.png", (grid.cpu().numpy() * 255).round().astype("uint8"))
+        for name, vals in values.items():
+            if vals:
+                summary[f"{split}/{name}"] = float(sum(vals) / len(vals))
+    with open(out_dir / "per_frame.csv", "w", newline="") as f:
+        fields = ["split", "frame", "view", *metrics]
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    table = summary_table(summary, splits, list(metrics))
+    (out_dir / "summary.md").write_text(table + "\n")
+    print("\n" + table)
+    if logger is not None and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_scalar"):
+        for key, value in summary.items():
+            logger.experiment.add_scalar(f"eval/{key}", value, step)
+    return summary
+
+
+def summary_table(summary: dict[str, float], splits: list[str], metrics: list[str]) -> str:
+    rows = []
+    for split in splits:
+        if any(f"{split}/{m}" in summary for m in metrics):
+            rows.append((split, *[f"{summary[f'{split}/{m}']:.4f}" if f"{split}/{m}" in summary else "-"
+                                  for m in metrics]))  # fmt: skip
+    return format_table(rows, ("split", *metrics))
+
+
+def load_module(ckpt: str | Path, map_location: str = "cpu"):
+    from framework.lightning.module import SplatModule
+
+    path = Path(ckpt)
+    if not path.is_file():
+        raise SplatrigError(f"ckpt={ckpt}: no such checkpoint file (look in a run's checkpoints/ folder).")
+    load_plugins()
+    return SplatModule.load_from_checkpoint(str(path), map_location=map_location, weights_only=False)
+
+
+def datamodule_for(module):
+    from framework.lightning.data import FrameDataModule
+
+    cfg = module.cfg
+
+    def build_split(split: str):
+        return build_component("dataset", cfg["data"], group="data", split=split)
+
+    return FrameDataModule(build_split, eval_splits=cfg["eval"]["splits"], val_split=cfg["eval"]["val_split"])
+
+
+def main() -> int:
+    import hydra
+    from omegaconf import DictConfig
+
+    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="evaluate")
+    def _main(cfg: DictConfig) -> None:
+        try:
+            module = load_module(cfg.ckpt)
+            dm = datamodule_for(module)
+            splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
+            metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
+            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
+            evaluate_module(module, dm, splits, metrics, out)
+            print(f"[splatrig] evaluation written to {out}")
+        except SplatrigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+
+    _main()
+    return 0
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""DataModule: train / validation / evaluation splits of one multi-view sequence, as FrameBatches."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, RandomSampler
+
+from framework.interfaces import MultiViewDataset
+from framework.types import Cameras, FrameBatch
+
+
+def collate_frames(items: Sequence[FrameBatch]) -> FrameBatch:
+    """Stack B=1 samples along the batch axis (cameras too)."""
+    if len(items) == 1:
+        return items[0]
+
+    def cat(name: str) -> torch.Tensor | None:
+        values = [getattr(i, name) for i in items]
+        return None if values[0] is None else torch.cat(values)
+
+    first = items[0].cameras
+    cams = Cameras(
+        K=torch.cat([i.cameras.K for i in items]),
+        world_to_cam=torch.cat([i.cameras.world_to_cam for i in items]),
+        width=first.width,
+        height=first.height,
+    )
+    return FrameBatch(
+        image=cat("image"), mask=cat("mask"), boundary=cat("boundary"), cameras=cams, frame=cat("frame"),
+        pose=cat("pose"), root=cat("root"), betas=cat("betas"), view=cat("view"),
+    )  # fmt: skip
+
+
+class FrameDataModule(L.LightningDataModule):
+    """Holds already-built split datasets; the model needs the train split's metadata before the trainer starts."""
+
+    def __init__(
+        self,
+        build_split: Callable[[str], MultiViewDataset],
+        eval_splits: Sequence[str] = ("novel_view",),
+        val_split: str = "novel_view",
+        val_max_items: int = 8,
+        num_workers: int = 0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        self.build_split = build_split
+        self.eval_splits = list(eval_splits)
+        self.val_split = val_split
+        self.val_max_items = val_max_items
+        self.num_workers = num_workers
+        self.seed = seed
+        self._splits: dict[str, MultiViewDataset] = {}
+
+    def split(self, name: str) -> MultiViewDataset:
+        if name not in self._splits:
+            self._splits[name] = self.build_split(name)
+        return self._splits[name]
+
+    @property
+    def train_set(self) -> MultiViewDataset:
+        return self.split("train")
+
+    def _loader(self, dataset: torch.utils.data.Dataset, sampler=None, shuffle: bool = False) -> DataLoader:
+        return DataLoader(
+            dataset,
+            batch_size=1,
+            sampler=sampler,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            collate_fn=collate_frames,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        generator = torch.Generator().manual_seed(self.seed)
+        # A long epoch: validation and checkpoints run on step counts, and resuming continues the step count.
+        sampler = RandomSampler(self.train_set, replacement=True, num_samples=max(len(self.train_set), 1000),
+                                generator=generator)  # fmt: skip
+        return self._loader(self.train_set, sampler=sampler)
+
+    def val_dataloader(self) -> DataLoader:
+        dataset = self.split(self.val_split)
+        n = len(dataset)
+        take = min(n, self.val_max_items)
+        idx = torch.linspace(0, n - 1, take).round().long().unique().tolist() if n else []
+        return self._loader(torch.utils.data.Subset(dataset, idx))
+
+    def eval_dataloader(self, split: str) -> DataLoader:
+        return self._loader(self.split(split))

@@ -1,0 +1,222 @@
+"""The LightningModule: builds the avatar from the registries and runs one manually-optimised step per batch.
+
+Manual optimisation with ONE optimizer (one named param group per parameter kind) keeps `global_step` equal to the
+number of training iterations (Lightning counts every wrapped `optimizer.step()`), and lets the densifier resize
+parameters and their Adam state between steps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from framework.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
+from framework.build import ConfigError, build_component, node_kwargs
+from framework.losses import CompositeLoss
+from framework.types import FrameBatch, Gaussians
+
+
+def psnr(pred: Tensor, target: Tensor) -> Tensor:
+    mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    return -10 * torch.log10(mse)
+
+
+class SplatModule(L.LightningModule):
+    def __init__(self, cfg: dict[str, Any], data_info: dict[str, Any]) -> None:
+        super().__init__()
+        self.save_hyperparameters({"cfg": cfg, "data_info": data_info})
+        self.automatic_optimization = False
+        self.cfg = cfg
+        self.data_info = data_info
+        bounds = torch.tensor(data_info["bounds"], dtype=torch.float32)  # [2, 3]
+        self.scene_scale = float((bounds[1] - bounds[0]).norm() / 2)
+
+        body = build_component("body", cfg["body"])
+        if body is not None and data_info.get("num_joints") not in (None, body.num_joints):
+            raise ConfigError(
+                f"body '{cfg['body']['name']}' has {body.num_joints} joints but the dataset's poses have "
+                f"{data_info['num_joints']}. Select the body the data was made with (dataset body: "
+                f"'{data_info.get('body_name')}'), e.g. `body={data_info.get('body_name')}`."
+            )
+        gaussians = self._initial_gaussians(body, bounds)
+        corrector = build_component("corrector", cfg["corrector"])
+        deformer = build_component("deformer", cfg["deformer"])
+        rasterizer = build_component("rasterizer", cfg["rasterizer"])
+        if body is not None:
+            corrector.bind(body.num_joints * 3)
+            canonical_bounds = _padded_box(body.rest_vertices, 0.1)
+            deformer.bind(body, canonical_bounds)
+        else:
+            deformer.bind(None, bounds)
+        refine_cfg = cfg.get("pose_refine", {}) or {}
+        refiner = None
+        if body is not None:
+            refiner = PoseRefiner(int(data_info["num_frames_total"]), body.num_joints, bool(refine_cfg.get("enabled")))
+        self.avatar = Avatar(
+            GaussianParams(gaussians), rasterizer, corrector, deformer, body, refiner,
+            background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
+        )  # fmt: skip
+        self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
+        self.densifier = build_component("densifier", cfg["densifier"])
+        self.densifier_state: dict[str, Any] = (
+            self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
+        )
+        self._step_started = time.perf_counter()
+
+    # ----------------------------------------------------------------------------------------------- construction
+    def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
+        from framework import gaussian_init
+
+        g = self.cfg["gaussians"]
+        seed = int(self.cfg.get("seed", 0))
+        if body is not None:
+            return gaussian_init.from_body_surface(
+                body, num=int(g["num"]), sh_degree=int(g["sh_degree"]), seed=seed,
+                opacity=float(g.get("opacity", 0.1)),
+            )  # fmt: skip
+        return gaussian_init.random_in_box(
+            bounds, num=int(g["num"]), sh_degree=int(g["sh_degree"]), seed=seed, opacity=float(g.get("opacity", 0.1)),
+        )  # fmt: skip
+
+    def configure_optimizers(self):
+        lr = self.cfg["optim"]["lr"]
+        params = self.avatar.gaussians.params
+        groups = []
+        for key in GAUSSIAN_KEYS:
+            if key in params and params[key].requires_grad:
+                scale = self.scene_scale if key == "means" else 1.0
+                groups.append({"params": [params[key]], "lr": float(lr[key]) * scale, "name": key})
+        networks = [p for m in (self.avatar.corrector, self.avatar.deformer) for p in m.parameters()]
+        if networks:
+            groups.append({"params": networks, "lr": float(lr["networks"]), "name": "networks"})
+        if self.avatar.pose_refiner is not None and self.avatar.pose_refiner.enabled:
+            groups.append({"params": [self.avatar.pose_refiner.pose_residual], "lr": float(lr["pose"]), "name": "pose"})
+            groups.append({"params": [self.avatar.pose_refiner.joint_residual], "lr": float(lr["joints"]),
+                           "name": "joints"})  # fmt: skip
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    # ------------------------------------------------------------------------------------------------- schedules
+    def sh_degree(self, step: int) -> int:
+        g = self.cfg["gaussians"]
+        every = int(g.get("sh_increase_every", 1000))
+        return min(int(g["sh_degree"]), step // max(every, 1))
+
+    def _set_learning_rates(self, optimizer: torch.optim.Optimizer, step: int) -> None:
+        """3DGS: the position learning rate decays exponentially to `means_final_ratio` of its start."""
+        lr = self.cfg["optim"]["lr"]
+        total = max(int(self.cfg["trainer"]["max_steps"]), 1)
+        ratio = float(self.cfg["optim"].get("means_final_ratio", 0.01))
+        t = min(step / total, 1.0)
+        for group in optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = float(lr["means"]) * self.scene_scale * math.exp(t * math.log(ratio))
+
+    # ---------------------------------------------------------------------------------------------------- steps
+    def render_batch(self, batch: FrameBatch, step: int | None = None):
+        step = self.global_step if step is None else step
+        return self.avatar(batch, sh_degree=self.sh_degree(step))
+
+    def training_step(self, batch: FrameBatch, batch_idx: int) -> Tensor:
+        opt = self.optimizers()
+        optimizer = opt.optimizer
+        step = self.global_step
+        self._set_learning_rates(optimizer, step)
+        out = self.render_batch(batch, step)
+        total, terms = self.loss_fn(out.render, batch, out.aux)
+        params = self.avatar.gaussians.params
+        info = {
+            "means2d": out.render.means2d,
+            "radii": out.render.radii,
+            "width": batch.cameras.width,
+            "height": batch.cameras.height,
+            "n_cameras": batch.cameras.num,
+        }
+        if self.densifier is not None:
+            self.densifier.step_pre_backward(params, self._densifier_optimizers(optimizer), self.densifier_state,
+                                             step, info)  # fmt: skip
+        self.manual_backward(total)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        if self.densifier is not None:
+            with torch.no_grad():
+                self.densifier.step_post_backward(params, self._densifier_optimizers(optimizer),
+                                                  self.densifier_state, step, info)  # fmt: skip
+        now = time.perf_counter()
+        ms = (now - self._step_started) * 1000
+        self._step_started = now
+        with torch.no_grad():
+            train_psnr = psnr(out.render.rgb.detach(), batch.image).mean()
+        self.log_dict({f"loss/{k}": v.detach() for k, v in terms.items()}, on_step=True, batch_size=1)
+        self.log("loss/total", total.detach(), on_step=True, prog_bar=False, batch_size=1)
+        self.log("train/psnr", train_psnr, on_step=True, batch_size=1)
+        self.log("train/num_gaussians", float(self.avatar.gaussians.num), on_step=True, batch_size=1)
+        self.log("train/ms_per_iteration", ms, on_step=True, batch_size=1)
+        self.log("train/sh_degree", float(self.sh_degree(step)), on_step=True, batch_size=1)
+        for group in optimizer.param_groups:
+            self.log(f"lr/{group['name']}", group["lr"], on_step=True, batch_size=1)
+        self.last_train_psnr = float(train_psnr)
+        return total.detach()
+
+    def _densifier_optimizers(self, optimizer: torch.optim.Optimizer) -> dict[str, torch.optim.Optimizer]:
+        """One optimizer serves every per-Gaussian key; the surgery finds each key's group by its name."""
+        return {g["name"]: optimizer for g in optimizer.param_groups if g["name"] in GAUSSIAN_KEYS}
+
+    def validation_step(self, batch: FrameBatch, batch_idx: int) -> None:
+        out = self.render_batch(batch)
+        value = psnr(out.render.rgb.clamp(0, 1), batch.image).mean()
+        self.log("val/psnr", value, on_epoch=True, on_step=False, batch_size=1, prog_bar=True)
+
+    # -------------------------------------------------------------------------------------------- checkpointing
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["densifier_state"] = {
+            k: (v.detach().cpu() if isinstance(v, Tensor) else v) for k, v in self.densifier_state.items()
+        }
+        checkpoint["splatrig_stage"] = {
+            "corrector_enabled": bool(getattr(self.avatar.corrector, "enabled", True)),
+            "deformer_enabled": bool(getattr(self.avatar.deformer, "enabled", True)),
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        stored_cfg = checkpoint.get("hyper_parameters", {}).get("cfg")
+        if stored_cfg is not None:
+            _check_compatible(stored_cfg, self.cfg)
+        self.avatar.gaussians.resize_to(checkpoint["state_dict"], "avatar.gaussians.")
+        state = checkpoint.get("densifier_state")
+        if state is not None:
+            self.densifier_state = {k: (v.to(self.device) if isinstance(v, Tensor) else v) for k, v in state.items()}
+        stage = checkpoint.get("splatrig_stage", {})
+        if "corrector_enabled" in stage:
+            self.avatar.corrector.enabled = stage["corrector_enabled"]
+        if "deformer_enabled" in stage and hasattr(self.avatar.deformer, "enabled"):
+            self.avatar.deformer.enabled = stage["deformer_enabled"]
+
+
+# The structural parts of a config a checkpoint depends on: change one and the stored tensors no longer fit.
+STRUCTURAL_GROUPS = ("body", "corrector", "deformer", "data")
+
+
+def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
+    problems = []
+    for group in STRUCTURAL_GROUPS:
+        old_name, _ = node_kwargs(stored.get(group))
+        new_name, _ = node_kwargs(current.get(group))
+        if old_name != new_name:
+            problems.append(f"{group}: checkpoint has '{old_name}', this run has '{new_name}'")
+    if problems:
+        raise ConfigError(
+            "the checkpoint was made with an incompatible config (" + "; ".join(problems) + "). Resume with the "
+            "same choices (e.g. `" + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
+            + "`), or start a new run without ckpt_path."
+        )
+
+
+def _padded_box(points: Tensor, margin: float) -> Tensor:
+    lo = points.min(0).values
+    hi = points.max(0).values
+    pad = (hi - lo) * margin
+    return torch.stack([lo - pad, hi + pad])
