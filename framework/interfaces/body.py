@@ -14,6 +14,7 @@ class BodyModel(nn.Module, ABC):
     Buffers every body provides (float32 unless stated):
       rest_vertices [V, 3], faces [F, 3] long, skin_weights [V, J] (rows sum to 1),
       parents [J] long (-1 for the root), rest_joints [J, 3].
+    Optional: uvs [Vt, 2] and face_uvs [F, 3] long (texture coordinates and each face's indices into them).
     `joint_names` lists the J joints in order.
     Pose convention: `pose` [B, J, 3] axis-angle rotations, joint k rotating about its rest joint position in axes
     aligned with the world at rest, composed along the kinematic chain (SMPL's convention); joint 0 is the root.
@@ -37,3 +38,35 @@ class BodyModel(nn.Module, ABC):
         blended = torch.einsum("vj,bjkl->bvkl", self.skin_weights.to(T.dtype), T)  # [B, V, 4, 4]
         v = self.rest_vertices.to(T.dtype)
         return (blended[..., :3, :3] @ v.unsqueeze(-1)).squeeze(-1) + blended[..., :3, 3]
+
+    def vertex_normals(self, vertices: Tensor | None = None) -> Tensor:
+        """Area-weighted unit vertex normals [V, 3] of the rest mesh, or of `vertices` [..., V, 3] (e.g. posed)."""
+        v = self.rest_vertices if vertices is None else vertices
+        f = self.faces
+        a, b, c = v[..., f[:, 0], :], v[..., f[:, 1], :], v[..., f[:, 2], :]  # [..., F, 3]
+        face_n = torch.linalg.cross(b - a, c - a, dim=-1)  # [..., F, 3], length = 2 * area
+        n = torch.zeros_like(v)
+        for k in range(3):
+            n = n.index_add(-2, f[:, k], face_n)
+        return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    def surface_samples(self, n: int, seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+        """`n` area-weighted random points on the rest mesh, deterministic for `seed`.
+
+        Returns points [n, 3], face ids [n] long and barycentric coordinates [n, 3] (points = bary @ face corners),
+        so callers can interpolate any per-vertex quantity (skinning weights, UVs, normals) at the samples."""
+        v, f = self.rest_vertices.double(), self.faces
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]  # [F, 3]
+        area = 0.5 * torch.linalg.cross(b - a, c - a, dim=-1).norm(dim=-1)  # [F]
+        gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        cdf = torch.cumsum(area.cpu(), 0)  # inverse-CDF sampling: handles n = 0 and any face count
+        u = torch.rand(int(n), generator=gen, dtype=torch.float64) * cdf[-1]
+        face_ids = torch.searchsorted(cdf, u, right=True).clamp_max(len(cdf) - 1)  # [n]
+        r1, r2 = torch.rand(2, int(n), generator=gen, dtype=torch.float64)
+        s = r1.sqrt()  # uniform on a triangle (Osada et al.)
+        bary = torch.stack([1 - s, s * (1 - r2), s * r2], dim=-1)  # [n, 3]
+        face_ids = face_ids.to(f.device)
+        corners = v[f[face_ids]]  # [n, 3, 3]
+        points = (bary.to(v.device).unsqueeze(-1) * corners).sum(-2)
+        dtype = self.rest_vertices.dtype
+        return points.to(dtype), face_ids, bary.to(device=v.device, dtype=dtype)

@@ -1,0 +1,93 @@
+"""The MLP behind the appearance correctors (the paper's F_a), shared by `latent` and `posenc`.
+
+F_a maps [pose, per-Gaussian feature] to residuals (d_alpha, d_s, d_r, d_SH). The pose is the same for all N Gaussians
+of a frame, so the first layer is split: W [pose, f] = W_p pose + W_f f, and W_p pose (one vector) is computed once
+and broadcast instead of concatenating an [N, P] copy of the pose. The last layer starts at zero, so a freshly
+switched-on corrector is exactly the identity and stage 2 starts from the stage-1 solution.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from framework.geometry import quat_multiply
+from framework.interfaces.corrector import Corrector
+from framework.types import Gaussians, num_sh_coeffs
+
+
+class MLPCorrector(Corrector):
+    """Base class: subclasses say how to build the per-Gaussian feature [N, F] (`features`, `feature_dim`)."""
+
+    feature_dim: int = 0
+
+    def __init__(self, hidden: int = 128, layers: int = 4, all_sh: bool = False, sh_degree: int = 3) -> None:
+        super().__init__()
+        if layers < 2:
+            raise ValueError(f"corrector.layers: expected >= 2 linear layers, got {layers}.")
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"corrector.sh_degree: expected 0..3, got {sh_degree}.")
+        self.hidden, self.num_layers, self.all_sh, self.sh_degree = hidden, layers, all_sh, sh_degree
+        self.num_pose_features: int | None = None
+        self.pose_in: nn.Linear | None = None
+        self.feature_in: nn.Linear | None = None
+        self.trunk: nn.Sequential | None = None
+        self.head: nn.Linear | None = None
+
+    @property
+    def num_sh_out(self) -> int:
+        """SH coefficients corrected: all of degree <= sh_degree (all_sh) or the DC term only."""
+        return num_sh_coeffs(self.sh_degree) if self.all_sh else 1
+
+    def bind(self, num_pose_features: int) -> None:
+        """Build the layers for a body with `num_pose_features` pose inputs (J * 3 axis-angle)."""
+        if num_pose_features < 1:
+            raise ValueError(f"corrector.bind: num_pose_features must be positive, got {num_pose_features}.")
+        self.num_pose_features = num_pose_features
+        self.pose_in = nn.Linear(num_pose_features, self.hidden, bias=False)
+        self.feature_in = nn.Linear(self.feature_dim, self.hidden)
+        trunk: list[nn.Module] = []
+        for _ in range(self.num_layers - 2):
+            trunk += [nn.Linear(self.hidden, self.hidden), nn.ReLU()]
+        self.trunk = nn.Sequential(*trunk)
+        self.head = nn.Linear(self.hidden, 1 + 3 + 4 + 3 * self.num_sh_out)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def features(self, gaussians: Gaussians) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def residuals(self, gaussians: Gaussians, pose: Tensor) -> Tensor:
+        """[N, 11] (or [N, 8 + 3K] with all_sh): d_alpha, d_s (3), d_r (4, added to the identity), d_SH (3 or 3K)."""
+        if self.head is None:
+            raise RuntimeError(
+                f"corrector '{self.registry_name}': bind(num_pose_features) was not called; call it with the body's "
+                "pose size (num_joints * 3) before the first forward."
+            )
+        pose = pose.detach().reshape(-1)  # gradient-stopped: appearance must not bend the pose
+        if pose.shape[0] != self.num_pose_features:
+            raise ValueError(
+                f"corrector '{self.registry_name}': pose has {pose.shape[0]} features but the corrector was bound "
+                f"with {self.num_pose_features}; bind it to the body the poses come from."
+            )
+        f = self.features(gaussians)  # [N, F]
+        h = self.feature_in(f) + self.pose_in(pose.to(f.dtype))  # [N, H] + [H]
+        h = self.trunk(torch.relu(h))
+        return self.head(h)  # [N, out]
+
+    def forward(self, gaussians: Gaussians, pose: Tensor) -> Gaussians:
+        if not self.enabled:
+            return gaussians
+        d = self.residuals(gaussians, pose).to(gaussians.means.dtype)
+        n = gaussians.num
+        d_rot = d[:, 4:8] + d.new_tensor([1.0, 0.0, 0.0, 0.0])
+        d_sh = d[:, 8:].reshape(n, self.num_sh_out, 3)
+        sh = gaussians.sh
+        k = min(sh.shape[1], self.num_sh_out)
+        sh = torch.cat([sh[:, :k] + d_sh[:, :k].to(sh.dtype), sh[:, k:]], dim=1)
+        return gaussians.replace(
+            opacity_logits=gaussians.opacity_logits + d[:, 0],
+            log_scales=gaussians.log_scales + d[:, 1:4],
+            quats=quat_multiply(d_rot, gaussians.quats),
+            sh=sh,
+        )

@@ -1,0 +1,47 @@
+"""`lbs_residual`: LBS whose grid weights are refined by the paper's F_dw (switched on in stage 2)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from framework.lbs import LBSDeformerBase
+from framework.posenc import normalize_to_bounds, posenc, posenc_dim
+from framework.registry import register
+
+
+@register("deformer", "lbs_residual")
+class LBSResidualDeformer(LBSDeformerBase):
+    """w = normalise((w_grid + eps) * exp(dw(x))), dw = MLP(posenc(x)) with a zero-initialised last layer.
+
+    The residual acts on log-weights: the result is non-negative and sums to one by construction (a softmax of
+    log(w_grid + eps) + dw), and it starts as the grid weights. `eps` (1e-6) lets a joint the grid gives no weight
+    gain some if the data demands (dw must reach about log(w / eps) ~ 14), while leaking at most J * eps at start.
+    Disabled (stage 1) it is plain `lbs` and its parameters are unused. After training, `bake` stores the final
+    weights per Gaussian so F_dw is not evaluated at inference.
+    """
+
+    def __init__(self, hidden: int = 32, layers: int = 4, num_freqs: int = 4, eps: float = 1e-6, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.enabled = True
+        self.hidden, self.num_layers, self.num_freqs, self.eps = hidden, layers, num_freqs, eps
+        self.mlp: nn.Sequential | None = None
+
+    def bind(self, body: object | None, bounds: Tensor | None) -> None:
+        super().bind(body, bounds)
+        dims = [posenc_dim(self.num_freqs)] + [self.hidden] * (self.num_layers - 1)
+        mods: list[nn.Module] = []
+        for a, b in zip(dims[:-1], dims[1:], strict=True):
+            mods += [nn.Linear(a, b), nn.ReLU()]
+        last = nn.Linear(dims[-1], self.field.num_joints)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        self.mlp = nn.Sequential(*mods, last)
+
+    def weights(self, points: Tensor) -> Tensor:
+        w = super().weights(points)  # [..., J]
+        if not self.enabled or self.mlp is None:
+            return w
+        x = normalize_to_bounds(points, self.field.bounds)
+        dw = self.mlp(posenc(x, self.num_freqs).to(w.dtype))  # [..., J]
+        return torch.softmax(torch.log(w + self.eps) + dw, dim=-1)

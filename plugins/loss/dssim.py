@@ -1,0 +1,37 @@
+"""D-SSIM = (1 - SSIM) / 2 with kornia's Gaussian-window SSIM (window 11, sigma 1.5)."""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from framework.interfaces.loss import Loss
+from framework.registry import register
+from framework.types import FrameBatch, RenderOutput
+
+
+def to_nchw(x: Tensor) -> Tensor:
+    return x.permute(0, 3, 1, 2)  # [B, H, W, C] -> [B, C, H, W]
+
+
+@register("loss", "dssim")
+class DSSIMLoss(Loss):
+    """Structural dissimilarity over the whole image, mean over pixels, channels and the batch.
+
+    'same' padding (reflected borders) keeps border pixels in the loss, as 3DGS training does. Images smaller than
+    the window use the largest window the reflection allows (down to one pixel).
+    """
+
+    def __init__(self, window_size: int = 11) -> None:
+        super().__init__()
+        if window_size < 1 or window_size % 2 == 0:
+            raise ValueError(f"loss 'dssim': window_size must be a positive odd number, got {window_size}.")
+        self.window_size = window_size
+
+    def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
+        from kornia.metrics import ssim
+
+        pred, target = to_nchw(render.rgb), to_nchw(batch.image.to(render.rgb.dtype))
+        # Reflected borders need the half window below the image size: tiny renders get a smaller window.
+        window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
+        ssim_map = ssim(pred, target, window, max_val=1.0)  # [B, 3, H, W]
+        return ((1.0 - ssim_map) / 2.0).mean()

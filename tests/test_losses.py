@@ -1,0 +1,258 @@
+"""Loss terms against hand computations, the boundary band, and the weighted composite built from configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import correlate1d
+
+from framework.losses import CompositeLoss
+from framework.plugins import load_plugins
+from framework.registry import LOSSES, UnknownComponentError
+from framework.types import Cameras, FrameBatch, RenderOutput
+
+load_plugins()
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def make(b=2, h=12, w=14, seed=0, dtype=torch.float32) -> tuple[RenderOutput, FrameBatch]:
+    g = torch.Generator().manual_seed(seed)
+    rgb = torch.rand(b, h, w, 3, generator=g, dtype=dtype)
+    alpha = torch.rand(b, h, w, 1, generator=g, dtype=dtype)
+    image = torch.rand(b, h, w, 3, generator=g, dtype=dtype)
+    mask = torch.zeros(b, h, w)
+    mask[:, 3:9, 4:10] = 1.0
+    boundary = torch.ones(b, h, w)
+    boundary[:, 2:10, 3:11] = 0.0  # a band around the silhouette
+    boundary[:, 4:8, 5:9] = 1.0
+    cams = Cameras(torch.eye(3).expand(b, 3, 3), torch.eye(4).expand(b, 4, 4), w, h)
+    render = RenderOutput(rgb=rgb, alpha=alpha, depth=None, means2d=torch.zeros(b, 0, 2), radii=torch.zeros(b, 0))
+    batch = FrameBatch(image=image, mask=mask, boundary=boundary, cameras=cams, frame=torch.zeros(b, dtype=torch.long))
+    return render, batch
+
+
+def np64(x: torch.Tensor) -> np.ndarray:
+    return x.detach().double().numpy()
+
+
+@pytest.mark.parametrize("boundary", [True, False])
+@pytest.mark.parametrize("foreground_only", [True, False])
+def test_l1_hand(boundary, foreground_only):
+    render, batch = make()
+    loss = LOSSES.build("l1", boundary=boundary, foreground_only=foreground_only)(render, batch, {})
+    rgb, img, mb, m = np64(render.rgb), np64(batch.image), np64(batch.boundary), np64(batch.mask)
+    total = 0.0
+    for b_, i, j, c in np.ndindex(*rgb.shape):
+        w = (mb[b_, i, j] if boundary else 1.0) * (m[b_, i, j] if foreground_only else 1.0)
+        total += w * abs(rgb[b_, i, j, c] - img[b_, i, j, c])
+    assert loss.item() == pytest.approx(total / rgb.size, rel=1e-5)
+
+
+def test_boundary_band_is_ignored():
+    render, batch = make()
+    band = (batch.boundary == 0).unsqueeze(-1)
+    assert band.any()
+    changed = RenderOutput(
+        rgb=torch.where(band, 1.0 - render.rgb, render.rgb),
+        alpha=torch.where(band, 1.0 - render.alpha, render.alpha),
+        depth=None,
+        means2d=render.means2d,
+        radii=render.radii,
+    )
+    for name in ("l1", "alpha"):
+        with_mb = LOSSES.build(name)
+        without = LOSSES.build(name, boundary=False)
+        assert with_mb(changed, batch, {}).item() == pytest.approx(with_mb(render, batch, {}).item(), abs=1e-7)
+        assert abs(without(changed, batch, {}).item() - without(render, batch, {}).item()) > 1e-3
+    # the gradient in the band is exactly zero
+    rgb = render.rgb.clone().requires_grad_(True)
+    LOSSES.build("l1")(RenderOutput(rgb, render.alpha, None, render.means2d, render.radii), batch, {}).backward()
+    assert (rgb.grad[band.expand_as(rgb)] == 0).all() and (rgb.grad[~band.expand_as(rgb)] != 0).all()
+
+
+@pytest.mark.parametrize("norm", ["l1", "l2"])
+def test_alpha_hand(norm):
+    render, batch = make(seed=3)
+    loss = LOSSES.build("alpha", norm=norm)(render, batch, {})
+    a, m, mb = np64(render.alpha)[..., 0], np64(batch.mask), np64(batch.boundary)
+    err = np.abs(a - m) if norm == "l1" else (a - m) ** 2
+    assert loss.item() == pytest.approx((mb * err).mean(), rel=1e-5)
+    with pytest.raises(ValueError, match="norm"):
+        LOSSES.build("alpha", norm="huber")
+
+
+def test_weight_std():
+    render, batch = make()
+    term = LOSSES.build("weight_std")
+    std = torch.rand(50, requires_grad=True)
+    value = term(render, batch, {"weight_std": std})
+    assert value.item() == pytest.approx(float(np64(std).mean()), rel=1e-6)
+    value.backward()
+    torch.testing.assert_close(std.grad, torch.full_like(std, 1 / 50))
+    assert term(render, batch, {}).item() == 0.0
+    assert term(render, batch, {"weight_std": torch.zeros(0)}).item() == 0.0
+
+
+def _ssim_map_mirror(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """float64 SSIM map with the 11-tap sigma-1.5 Gaussian and mirrored borders (d c b | a b c d)."""
+    r = np.arange(11) - 5
+    g = np.exp(-(r**2) / 4.5)
+    g /= g.sum()
+
+    def blur(x):
+        return correlate1d(correlate1d(x, g, axis=0, mode="mirror"), g, axis=1, mode="mirror")
+
+    mx, my = blur(a), blur(b)
+    vx, vy, cxy = blur(a * a) - mx**2, blur(b * b) - my**2, blur(a * b) - mx * my
+    return ((2 * mx * my + 1e-4) * (2 * cxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (vx + vy + 9e-4))
+
+
+def test_dssim_hand():
+    render, batch = make(h=20, w=17, seed=5)
+    loss = LOSSES.build("dssim")(render, batch, {})
+    rgb, img = np64(render.rgb), np64(batch.image)
+    maps = [_ssim_map_mirror(rgb[b, ..., c], img[b, ..., c]) for b in range(2) for c in range(3)]
+    expected = np.mean([(1 - m) / 2 for m in maps])
+    assert loss.item() == pytest.approx(expected, abs=1e-5)
+    same = RenderOutput(batch.image.clone(), render.alpha, None, render.means2d, render.radii)
+    assert LOSSES.build("dssim")(same, batch, {}).item() == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("fill", [0.0, 1.0])
+def test_extremes_finite(fill):
+    """Constant images (zero variance, SSIM's 0/0 case), saturated alpha, and a 1x1 image."""
+    render, batch = make(h=16, w=16)
+    for h, w in [(16, 16), (1, 1)]:
+        rgb = torch.full((2, h, w, 3), fill, requires_grad=True)
+        alpha = torch.full((2, h, w, 1), fill, requires_grad=True)
+        b = FrameBatch(
+            image=torch.full((2, h, w, 3), fill),
+            mask=torch.full((2, h, w), fill),
+            boundary=torch.ones(2, h, w),
+            cameras=batch.cameras,
+            frame=batch.frame,
+        )
+        r = RenderOutput(rgb, alpha, None, render.means2d, render.radii)
+        total = sum(LOSSES.build(n)(r, b, {}) for n in ("l1", "alpha", "dssim", "weight_std"))
+        total.backward()
+        assert torch.isfinite(total) and torch.isfinite(rgb.grad).all() and torch.isfinite(alpha.grad).all()
+
+
+def test_bfloat16_inputs():
+    render, batch = make(h=16, w=16, dtype=torch.bfloat16)
+    ref_render, ref_batch = make(h=16, w=16)
+    for name in ("l1", "alpha", "dssim"):
+        lo = LOSSES.build(name)(render, batch, {})
+        hi = LOSSES.build(name)(ref_render, ref_batch, {})
+        assert torch.isfinite(lo) and abs(lo.float().item() - hi.item()) < 0.02
+
+
+def test_lpips_loss_matches_module():
+    entry = LOSSES.entry("lpips")
+    if entry.unavailable_reason() is not None:
+        pytest.skip(entry.unavailable_reason())
+    from framework.lpips import LPIPS
+
+    render, batch = make(h=32, w=40)
+    rgb = render.rgb.clone().requires_grad_(True)
+    term = LOSSES.build("lpips")
+    value = term(RenderOutput(rgb, render.alpha, None, render.means2d, render.radii), batch, {})
+    expected = LPIPS("alex")(render.rgb.permute(0, 3, 1, 2), batch.image.permute(0, 3, 1, 2), normalize=True).mean()
+    assert value.item() == pytest.approx(expected.item(), rel=1e-5)
+    value.backward()
+    assert torch.isfinite(rgb.grad).all() and rgb.grad.abs().sum() > 0
+    assert list(term.parameters()) == [] and term.state_dict() == {}  # backbone kept out of checkpoints/optimizers
+
+
+def test_composite_weights_and_values():
+    render, batch = make()
+    aux = {"weight_std": torch.tensor([0.2, 0.4])}
+    comp = CompositeLoss(
+        {
+            "l1": {"weight": 0.8, "boundary": True},
+            "alpha": {"weight": 10.0},
+            "weight_std": {"weight": 0.2},
+            "l1_fg": {"name": "l1", "weight": 0.5, "foreground_only": True},
+        }
+    )
+    total, values = comp(render, batch, aux)
+    parts = {
+        "l1": LOSSES.build("l1")(render, batch, aux),
+        "alpha": LOSSES.build("alpha")(render, batch, aux),
+        "weight_std": torch.tensor(0.3),
+        "l1_fg": LOSSES.build("l1", foreground_only=True)(render, batch, aux),
+    }
+    for k, v in parts.items():
+        assert values[k].item() == pytest.approx(v.item(), rel=1e-6)
+        assert not values[k].requires_grad
+    expected = 0.8 * parts["l1"] + 10 * parts["alpha"] + 0.2 * 0.3 + 0.5 * parts["l1_fg"]
+    assert total.item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_zero_weight_terms_are_not_built(monkeypatch):
+    built = []
+    original = LOSSES.build
+
+    def spy(name, /, **kwargs):
+        built.append(name)
+        return original(name, **kwargs)
+
+    monkeypatch.setattr(LOSSES, "build", spy)
+    comp = CompositeLoss({"l1": {"weight": 0.8}, "lpips": {"weight": 0.0}, "dssim": {"weight": 0}})
+    assert built == ["l1"] and list(comp.terms) == ["l1"]
+    render, batch = make()
+    total, values = comp(render, batch, {})
+    assert set(values) == {"l1"}
+
+
+def test_composite_bad_config_messages():
+    with pytest.raises(ValueError, match="no 'weight'"):
+        CompositeLoss({"l1": {"boundary": True}})
+    with pytest.raises(ValueError, match="must be a mapping"):
+        CompositeLoss({"l1": 0.8})
+    with pytest.raises(UnknownComponentError, match="Did you mean 'alpha'"):
+        CompositeLoss({"alpah": {"weight": 1.0}})
+    with pytest.raises(ValueError, match="'terms'"):
+        CompositeLoss.from_config({"l1": {"weight": 1.0}})
+
+
+def _compose_loss(name: str) -> dict:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        return OmegaConf.to_container(compose(config_name=f"loss/{name}"))["loss"]
+
+
+def test_loss_presets_compose_and_build():
+    paper = _compose_loss("paper")
+    assert paper["terms"] == {
+        "l1": {"weight": 0.8, "boundary": True},
+        "alpha": {"weight": 10.0},
+        "weight_std": {"weight": 0.2},
+        "dssim": {"weight": 0.2},
+        "lpips": {"weight": 0.0},
+    }
+    expected_change = {
+        "no_boundary_mask": ("l1", "boundary", False),
+        "foreground_only": ("l1", "foreground_only", True),
+        "no_alpha": ("alpha", "weight", 0.0),
+        "no_weight_std": ("weight_std", "weight", 0.0),
+        "paper_lpips": ("lpips", "weight", 0.2),
+    }
+    for preset, (term, key, value) in expected_change.items():
+        cfg = _compose_loss(preset)
+        assert cfg["terms"][term][key] == value
+        others = {k: v for k, v in cfg["terms"].items() if k != term}
+        assert others == {k: v for k, v in paper["terms"].items() if k != term}, preset  # exactly one row changes
+    static = _compose_loss("static")
+    assert static["terms"] == {"l1": {"weight": 0.8, "boundary": False}, "dssim": {"weight": 0.2}}
+    lpips_ok = LOSSES.entry("lpips").unavailable_reason() is None
+    for preset in ["paper", "static", *expected_change]:
+        if preset == "paper_lpips" and not lpips_ok:
+            continue
+        comp = CompositeLoss.from_config(_compose_loss(preset))
+        assert set(comp.terms) == {k for k, v in _compose_loss(preset)["terms"].items() if v["weight"] != 0}

@@ -1,0 +1,128 @@
+"""Polar decomposition: values against float64 SVD, gradients against finite differences, extremes stay finite."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from framework.geometry import axis_angle_to_rotmat
+from framework.polar import polar_decompose, polar_rotation, polar_rotation_values
+
+torch.manual_seed(0)
+D64 = torch.float64
+EYE = torch.eye(3, dtype=D64)
+
+
+def svd_rotation(A: torch.Tensor) -> torch.Tensor:
+    U, _, Vh = torch.linalg.svd(A.double())
+    d = torch.linalg.det(U @ Vh)
+    U = torch.cat([U[..., :2], U[..., 2:] * d.sign()[..., None, None]], dim=-1)
+    return U @ Vh
+
+
+def lbs_blends(n: int, joints: int = 4, max_angle: float = 2.0, dtype=D64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(1)
+    w = torch.rand(n, joints, generator=g, dtype=dtype)
+    w = w / w.sum(1, keepdim=True)
+    Rk = axis_angle_to_rotmat(torch.randn(joints, 3, generator=g, dtype=dtype).clamp(-1, 1) * max_angle)
+    return torch.einsum("nj,jab->nab", w, Rk)
+
+
+@pytest.mark.parametrize("kind", ["random", "lbs"])
+def test_values_match_svd(kind):
+    A = torch.randn(500, 3, 3, dtype=D64) if kind == "random" else lbs_blends(500)
+    R, S = polar_decompose(A)
+    ref = svd_rotation(A)
+    assert torch.allclose(R, ref, atol=1e-10)
+    assert torch.allclose(R.mT @ R, EYE.expand_as(R), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(500, dtype=D64), atol=1e-12)
+    assert torch.allclose(S, S.mT, atol=1e-12)
+    pos = torch.linalg.det(A) > 0
+    assert torch.linalg.eigvalsh(S[pos]).min() > -1e-10  # PSD where det > 0
+    assert torch.allclose(R @ S, A, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["random", "lbs"])
+def test_newton_forward_matches_svd_forward(kind):
+    A = torch.randn(300, 3, 3, dtype=D64) if kind == "random" else lbs_blends(300)
+    A[:3] = _extremes(D64)[[2, 4, 9]]  # rank 1, zero, reflection: routed to the SVD inside the Newton path
+    assert torch.allclose(polar_rotation_values(A, "newton"), polar_rotation_values(A, "svd"), atol=1e-10)
+
+
+def test_reflection_gives_closest_proper_rotation():
+    A = torch.randn(200, 3, 3, dtype=D64)
+    A[:, :, 0] *= torch.where(torch.linalg.det(A) > 0, -1.0, 1.0).to(D64)[:, None]  # make every det negative
+    assert (torch.linalg.det(A) < 0).all()
+    R = polar_rotation(A)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(200, dtype=D64), atol=1e-10)
+    assert torch.allclose(R, svd_rotation(A), atol=1e-8)
+
+
+def test_gradcheck_generic():
+    A = (torch.randn(6, 3, 3, dtype=D64) + 2.5 * EYE).requires_grad_()
+    assert torch.autograd.gradcheck(polar_rotation, (A,), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.3, 7.0])
+def test_gradcheck_at_equal_singular_values(scale):
+    """A = c R (rigid blends): SVD gradients are undefined here, the polar rotation's are not."""
+    R0 = axis_angle_to_rotmat(torch.tensor([[0.3, -1.2, 0.5], [0.0, 0.0, 0.0]], dtype=D64))
+    A = (scale * R0).requires_grad_()
+    assert torch.autograd.gradcheck(polar_rotation, (A,), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+def test_gradcheck_lbs_blends():
+    A = lbs_blends(5, max_angle=1.0).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a: polar_decompose(a)[1], (A,), eps=1e-6, atol=1e-6)
+
+
+def _extremes(dtype) -> torch.Tensor:
+    big = 1e4 if dtype == torch.float16 else 1e6  # float16 overflows at 65504
+    R = axis_angle_to_rotmat(torch.tensor([0.2, 0.4, -0.3], dtype=D64))
+    flip = axis_angle_to_rotmat(torch.tensor([0.0, math.pi, 0.0], dtype=D64))
+    cases = [
+        EYE,
+        R,
+        0.5 * R + 0.5 * R @ flip,  # antipodal bones in one blend: rank 1
+        0.5 * EYE + 0.5 * axis_angle_to_rotmat(torch.tensor([math.pi - 1e-4, 0.0, 0.0], dtype=D64)),  # near it
+        torch.zeros(3, 3, dtype=D64),
+        1e-6 * R,
+        big * R,
+        torch.diag(torch.tensor([1.0, 1.0, 1e-9], dtype=D64)),  # near singular
+        torch.diag(torch.tensor([2.0, 2.0, 2.0], dtype=D64)),
+        -EYE,  # det < 0
+    ]
+    return torch.stack(cases).to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16])
+def test_extremes_finite_values_and_gradients(dtype):
+    A = _extremes(dtype).requires_grad_()
+    R, S = polar_decompose(A)
+    assert R.dtype == dtype
+    assert torch.isfinite(R).all() and torch.isfinite(S).all()
+    R64 = R.double()
+    tol = 1e-5 if dtype in (torch.float64, torch.float32) else 2e-2
+    assert torch.allclose(R64.mT @ R64, EYE.expand_as(R64), atol=tol)
+    (R.double() * torch.randn(R.shape, dtype=D64)).sum().backward()
+    assert torch.isfinite(A.grad).all()
+    assert A.grad.double().abs().max() < 1e7
+
+
+def test_rank_deficient_rotation_still_maps_the_determined_direction():
+    """For the 50/50 antipodal blend A = R (2 a a^T)/2 only R a is determined; check it."""
+    R = axis_angle_to_rotmat(torch.tensor([0.2, 0.4, -0.3], dtype=D64))
+    flip = axis_angle_to_rotmat(torch.tensor([0.0, math.pi, 0.0], dtype=D64))
+    out = polar_rotation((0.5 * R + 0.5 * R @ flip)[None])[0]
+    a = torch.tensor([0.0, 1.0, 0.0], dtype=D64)
+    assert torch.allclose(out @ a, R @ a, atol=1e-10)
+
+
+def test_empty_and_batched_shapes():
+    assert polar_rotation(torch.zeros(0, 3, 3)).shape == (0, 3, 3)
+    A = torch.randn(2, 5, 3, 3, dtype=D64) + 3 * EYE
+    assert torch.allclose(polar_rotation(A), svd_rotation(A), atol=1e-10)
+    with pytest.raises(ValueError, match=r"\[\.\.\., 3, 3\]"):
+        polar_rotation(torch.zeros(4, 2, 2))
