@@ -36,8 +36,10 @@ class GaussianParams(nn.Module):
         if gaussians.skin_weights is not None:
             tensors["skin_weights"] = gaussians.skin_weights
         self.params = nn.ParameterDict(
-            {k: nn.Parameter(v.detach().clone().float().contiguous(), requires_grad=k != "skin_weights")
-             for k, v in tensors.items()}  # fmt: skip
+            {
+                k: nn.Parameter(v.detach().clone().float().contiguous(), requires_grad=k != "skin_weights")
+                for k, v in tensors.items()
+            }  # fmt: skip
         )
 
     @property
@@ -119,6 +121,13 @@ class Avatar(nn.Module):
         self.body = body
         self.pose_refiner = pose_refiner
         self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
+        # Real-time path: novel views of one pose reuse the corrected, posed Gaussians (inference only).
+        self._posed_cache: tuple[bytes, Gaussians, dict[str, Tensor]] | None = None
+
+    def _pose_key(self, batch: FrameBatch) -> bytes:
+        parts = [batch.frame[:1]]
+        parts += [t[:1] for t in (batch.pose, batch.root) if t is not None]
+        return b"".join(p.detach().cpu().numpy().tobytes() for p in parts) + bytes([self.gaussians.num % 251])
 
     def bone_transforms(self, batch: FrameBatch) -> tuple[Tensor | None, Tensor | None]:
         """World-space skinning transforms [J, 4, 4] and the pose features [P] for the corrector."""
@@ -133,14 +142,29 @@ class Avatar(nn.Module):
             transforms = batch.root[0] @ transforms
         return transforms, pose[0].reshape(-1)
 
-    def forward(self, batch: FrameBatch, sh_degree: int) -> AvatarOutput:
+    def pose(self, batch: FrameBatch) -> tuple[Gaussians, Gaussians, dict[str, Tensor]]:
+        """(canonical, posed, aux): F_a correction then skinning; cached across cameras when gradients are off."""
         canonical = self.gaussians.gaussians()
+        key = None
+        if not torch.is_grad_enabled() and not self.training:
+            key = self._pose_key(batch)
+            if self._posed_cache is not None and self._posed_cache[0] == key:
+                return canonical, self._posed_cache[1], self._posed_cache[2]
         transforms, pose_features = self.bone_transforms(batch)
         corrected = canonical
         if pose_features is not None:
             corrected = self.corrector(canonical, pose_features)
         deformed = self.deformer(corrected, transforms)
-        posed = deformed.posed
+        if key is not None:
+            self._posed_cache = (key, deformed.posed, deformed.aux)
+        return canonical, deformed.posed, deformed.aux
+
+    def train(self, mode: bool = True) -> Avatar:
+        self._posed_cache = None
+        return super().train(mode)
+
+    def forward(self, batch: FrameBatch, sh_degree: int) -> AvatarOutput:
+        canonical, posed, aux = self.pose(batch)
         render = self.rasterizer.render(
             posed.means,
             posed.quats,
@@ -151,4 +175,4 @@ class Avatar(nn.Module):
             sh_degree=sh_degree,
             background=self.background,
         )
-        return AvatarOutput(render=render, aux=deformed.aux, canonical=canonical, posed=posed)
+        return AvatarOutput(render=render, aux=aux, canonical=canonical, posed=posed)

@@ -30,6 +30,17 @@ def choose_profile(argv: list[str]) -> list[str]:
     return [*argv, f"profile={profile}"]
 
 
+def quiet_libraries() -> None:
+    """Lightning's banners (GPU/TPU availability, tips) would bury our own progress and result lines."""
+    import logging
+    import warnings
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\).*")
+    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+
+
 def run(cfg: DictConfig) -> float | None:
     import lightning as L
     import torch
@@ -44,6 +55,7 @@ def run(cfg: DictConfig) -> float | None:
     from framework.plugins import load_plugins
 
     load_plugins()
+    quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
@@ -79,10 +91,22 @@ def run(cfg: DictConfig) -> float | None:
     logger = TensorBoardLogger(save_dir=str(out_dir), name="tb", version="") if cfg.logger.name else None
     ckpt_dir = out_dir / "checkpoints"
     callbacks = [
-        ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/psnr", mode="max", save_last=True,
-                        save_top_k=1, auto_insert_metric_name=False),  # fmt: skip
-        ModelCheckpoint(dirpath=ckpt_dir, filename="last", every_n_train_steps=int(cfg.callbacks.checkpoint_every),
-                        save_top_k=1, enable_version_counter=False),  # fmt: skip
+        ModelCheckpoint(
+            dirpath=ckpt_dir,
+            filename="best",
+            monitor="val/psnr",
+            mode="max",
+            save_last=True,
+            save_top_k=1,
+            auto_insert_metric_name=False,
+        ),  # fmt: skip
+        ModelCheckpoint(
+            dirpath=ckpt_dir,
+            filename="last",
+            every_n_train_steps=int(cfg.callbacks.checkpoint_every),
+            save_top_k=1,
+            enable_version_counter=False,
+        ),  # fmt: skip
         StageSwitch(int(cfg.stages.stage1_steps)),
         ImageGridLogger(int(cfg.callbacks.image_every), int(cfg.callbacks.image_views)),
     ]
@@ -112,6 +136,9 @@ def run(cfg: DictConfig) -> float | None:
                             f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
 
+    if module.bake_weights():
+        trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)
+        print(f"[splatrig] blend weights baked into each Gaussian: {ckpt_dir / 'final.ckpt'} needs no weight MLP")
     result: dict[str, float] = {}
     if cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False):
         result = evaluate_module(module, dm, list(cfg.eval.splits), list(cfg.eval.metrics), out_dir / "eval",

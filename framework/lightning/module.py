@@ -13,7 +13,7 @@ from typing import Any
 
 import lightning as L
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from framework.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.build import ConfigError, build_component, node_kwargs
@@ -171,6 +171,16 @@ class SplatModule(L.LightningModule):
         value = psnr(out.render.rgb.clamp(0, 1), batch.image).mean()
         self.log("val/psnr", value, on_epoch=True, on_step=False, batch_size=1, prog_bar=True)
 
+    @torch.no_grad()
+    def bake_weights(self) -> bool:
+        """Store the deformer's final blend weights in each Gaussian, so inference needs no weight field or MLP."""
+        deformer = self.avatar.deformer
+        if not hasattr(deformer, "bake") or self.avatar.body is None:
+            return False
+        weights = deformer.bake(self.avatar.gaussians.gaussians()).detach()
+        self.avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
+        return True
+
     # -------------------------------------------------------------------------------------------- checkpointing
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["densifier_state"] = {
@@ -210,7 +220,8 @@ def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
     if problems:
         raise ConfigError(
             "the checkpoint was made with an incompatible config (" + "; ".join(problems) + "). Resume with the "
-            "same choices (e.g. `" + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
+            "same choices (e.g. `"
+            + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
             + "`), or start a new run without ckpt_path."
         )
 

@@ -1,0 +1,159 @@
+"""The composed avatar (corrector -> deformer -> rasterizer) and the Lightning module's stage logic."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from framework.avatar import Avatar, GaussianParams, PoseRefiner
+from framework.gaussian_init import from_body_surface
+from framework.geometry import axis_angle_to_rotmat
+from framework.plugins import load_plugins
+from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
+from framework.types import Cameras, FrameBatch
+
+load_plugins()
+SIZE = 48
+
+
+@pytest.fixture(scope="module")
+def body():
+    return BODIES.build("procedural")
+
+
+def _camera(w2c: torch.Tensor | None = None) -> Cameras:
+    if w2c is None:  # 3 m in front of the body (which faces -y), looking at it; z up in the world
+        w2c = torch.tensor([[1.0, 0, 0, 0], [0, 0, -1, 0.0], [0, 1, 0, 3.0], [0, 0, 0, 1]])
+    f = SIZE * 1.2
+    K = torch.tensor([[f, 0, SIZE / 2], [0, f, SIZE / 2], [0, 0, 1.0]])
+    return Cameras(K[None], w2c[None], SIZE, SIZE)
+
+
+def _batch(body, pose=None, root=None, cameras=None) -> FrameBatch:
+    J = body.num_joints
+    z = torch.zeros(1, SIZE, SIZE)
+    return FrameBatch(
+        image=torch.zeros(1, SIZE, SIZE, 3), mask=z, boundary=z + 1, cameras=cameras or _camera(),
+        frame=torch.zeros(1, dtype=torch.long), pose=torch.zeros(1, J, 3) if pose is None else pose,
+        root=torch.eye(4)[None] if root is None else root,
+    )  # fmt: skip
+
+
+def _avatar(body, corrector="latent", deformer="lbs_residual", n=600) -> Avatar:
+    g = from_body_surface(body, num=n, sh_degree=1, seed=0, opacity=0.6)
+    corr = CORRECTORS.build(corrector)
+    corr.bind(body.num_joints * 3)
+    deform = DEFORMERS.build(deformer, grid_resolution=16) if deformer != "identity" else DEFORMERS.build(deformer)
+    lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
+    deform.bind(body, torch.stack([lo - 0.1, hi + 0.1]))
+    return Avatar(
+        GaussianParams(g), RASTERIZERS.build("torch_ref"), corr, deform, body, PoseRefiner(1, body.num_joints)
+    )
+
+
+def test_identity_pose_with_identity_corrector_renders_the_canonical_gaussians(body):
+    avatar = _avatar(body)
+    out = avatar(_batch(body), sh_degree=1)
+    canon = avatar.gaussians.gaussians()
+    torch.testing.assert_close(out.posed.means, canon.means, atol=1e-5, rtol=0)
+    direct = avatar.rasterizer.render(canon.means, canon.quats, canon.scales, canon.opacities, canon.sh, _camera(),
+                                      sh_degree=1, background=avatar.background)  # fmt: skip
+    assert direct.alpha.max() > 0.5, "the test camera does not see the body"
+    torch.testing.assert_close(out.render.rgb, direct.rgb, atol=1e-4, rtol=0)
+
+
+def test_rigid_motion_of_the_whole_skeleton_equals_moving_the_camera(body):
+    avatar = _avatar(body)
+    with torch.no_grad():  # a non-trivial corrector and residual must not break the equivalence
+        for p in list(avatar.corrector.parameters()) + list(avatar.deformer.parameters()):
+            p.add_(0.02 * torch.randn_like(p))
+    torch.manual_seed(0)
+    pose = 0.3 * torch.randn(1, body.num_joints, 3)
+    pose[:, 0] = 0
+    M = torch.eye(4)
+    M[:3, :3] = axis_angle_to_rotmat(torch.tensor([0.0, 0.0, math.pi / 5]))
+    M[:3, 3] = torch.tensor([0.2, -0.1, 0.05])
+    cam = _camera()
+    moved = avatar(_batch(body, pose=pose, root=M[None]), sh_degree=1).render
+    seen = avatar(_batch(body, pose=pose, cameras=Cameras(cam.K, cam.world_to_cam @ M, SIZE, SIZE)), sh_degree=1)
+    assert moved.alpha.max() > 0.5
+    torch.testing.assert_close(moved.rgb, seen.render.rgb, atol=2e-4, rtol=0)
+    torch.testing.assert_close(moved.alpha, seen.render.alpha, atol=2e-4, rtol=0)
+
+
+def test_blend_weights_are_a_partition_of_unity(body):
+    avatar = _avatar(body)
+    with torch.no_grad():
+        for p in avatar.deformer.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    w = avatar.deformer.bake(avatar.gaussians.gaussians())
+    assert (w >= 0).all()
+    torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[0]), atol=1e-5, rtol=0)
+
+
+def test_baked_weights_reproduce_the_trained_render(body):
+    avatar = _avatar(body)
+    with torch.no_grad():
+        for p in avatar.deformer.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    pose = 0.4 * torch.randn(1, body.num_joints, 3)
+    before = avatar(_batch(body, pose=pose), sh_degree=1).render.rgb
+    weights = avatar.deformer.bake(avatar.gaussians.gaussians()).detach()
+    avatar.gaussians.params["skin_weights"] = torch.nn.Parameter(weights, requires_grad=False)
+    avatar.deformer.mlp = None  # inference must not need F_dw any more
+    after = avatar(_batch(body, pose=pose), sh_degree=1).render.rgb
+    torch.testing.assert_close(after, before, atol=1e-5, rtol=0)
+
+
+def test_posed_gaussians_are_reused_for_novel_views_of_one_pose(body):
+    avatar = _avatar(body).eval()
+    calls = []
+    avatar.deformer.register_forward_hook(lambda *a: calls.append(1))
+    with torch.no_grad():
+        a = avatar(_batch(body), sh_degree=1)
+        b = avatar(_batch(body, cameras=_camera(torch.eye(4) @ _camera().world_to_cam[0])), sh_degree=1)
+        avatar(_batch(body, pose=0.1 * torch.ones(1, body.num_joints, 3)), sh_degree=1)
+    assert len(calls) == 2
+    assert a.posed is b.posed
+
+
+def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
+    from framework.lightning.callbacks import StageSwitch
+
+    avatar = _avatar(body)
+
+    class Trainer:
+        global_step = 0
+
+    class Module:
+        pass
+
+    module = Module()
+    module.avatar = avatar
+    module.log = lambda *a, **k: None
+    switch = StageSwitch(stage1_steps=10)
+
+    def grads_after_step(step: int) -> dict[str, bool]:
+        Trainer.global_step = step
+        switch.on_train_batch_start(Trainer, module, None, 0)
+        avatar.zero_grad(set_to_none=True)
+        pose = 0.2 * torch.ones(1, body.num_joints, 3)
+        out = avatar(_batch(body, pose=pose), sh_degree=1)
+        out.render.rgb.sum().backward()
+        return {
+            "gaussians": all(p.grad is not None for k, p in avatar.gaussians.params.items() if k != "latents"),
+            "pose": avatar.pose_refiner.pose_residual.grad is not None,
+            "joints": avatar.pose_refiner.joint_residual.grad is not None,
+            "corrector": any(p.grad is not None for p in avatar.corrector.parameters()),
+            "weight_mlp": any(p.grad is not None for p in avatar.deformer.parameters()),
+            "latents": avatar.gaussians.params["latents"].grad is not None,
+        }
+
+    stage1 = grads_after_step(0)
+    assert stage1 == {"gaussians": True, "pose": True, "joints": True, "corrector": False, "weight_mlp": False,
+                      "latents": False}  # fmt: skip
+    stage2 = grads_after_step(10)
+    assert stage2 == {"gaussians": True, "pose": True, "joints": True, "corrector": True, "weight_mlp": True,
+                      "latents": True}  # fmt: skip
