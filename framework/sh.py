@@ -1,0 +1,103 @@
+"""Real spherical harmonics up to degree 3 with the 3DGS/gsplat constants and sign convention.
+
+Every rasterizer backend turns SH coefficients into colours the same way, so the basis lives here once: colour =
+eval_sh(...) + 0.5, clamped at 0 (the clamp is the backend's job). Directions are normalised here, so callers pass the
+raw `mean - camera_centre` vector.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+MAX_SH_DEGREE = 3
+
+
+def num_sh_bases(degree: int) -> int:
+    """(degree + 1) ** 2 coefficients per colour channel."""
+    return (degree + 1) ** 2
+
+
+def _check_degree(degree: int) -> None:
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"sh_degree: expected an integer in 0..{MAX_SH_DEGREE}, got {degree}; lower the SH degree.")
+
+
+def sh_basis(degree: int, dirs: Tensor, eps: float = 1e-12) -> Tensor:
+    """Basis functions [..., (degree+1)^2] at the normalised directions `dirs` [..., 3].
+
+    A zero direction (camera exactly at the mean) gives the basis at (0, 0, 0): only the constant term survives,
+    with finite gradients, rather than NaN.
+    """
+    _check_degree(degree)
+    norm = dirs.norm(dim=-1, keepdim=True).clamp_min(eps)
+    d = dirs / norm
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        out += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+        if degree >= 3:
+            out += [
+                SH_C3[0] * y * (3.0 * xx - yy),
+                SH_C3[1] * xy * z,
+                SH_C3[2] * y * (4.0 * zz - xx - yy),
+                SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+                SH_C3[4] * x * (4.0 * zz - xx - yy),
+                SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3.0 * yy),
+            ]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
+    """SH value per channel: coeffs [..., K, 3] with K >= (degree+1)^2, dirs [..., 3] -> [..., 3].
+
+    Only the first (degree+1)^2 coefficients are used, so a model can raise its active degree during training
+    without reallocating its coefficients.
+    """
+    k = num_sh_bases(degree)
+    if coeffs.shape[-2] < k:
+        raise ValueError(
+            f"sh coefficients: degree {degree} needs at least {k} coefficients along dim -2, found shape "
+            f"{tuple(coeffs.shape)}; pass sh_degree <= {int(coeffs.shape[-2] ** 0.5) - 1} or allocate more."
+        )
+    basis = sh_basis(degree, dirs)  # [..., k]
+    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :k, :]).squeeze(-2)  # [..., 3]
+
+
+def rgb_to_sh0(rgb: Tensor) -> Tensor:
+    """DC coefficient whose colour (after the +0.5 offset) is `rgb`."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: Tensor) -> Tensor:
+    """Inverse of `rgb_to_sh0`."""
+    return sh0 * SH_C0 + 0.5
