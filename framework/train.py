@@ -7,6 +7,10 @@ from __future__ import annotations
 
 import os
 import sys
+
+# torch's OpenMP threads spin-wait by default; on a busy 2-core machine that starves the other thread (measured 3-10x
+# slower steps). Must be set before torch is imported; an explicit user setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +31,7 @@ def choose_profile(argv: list[str]) -> list[str]:
     profile = "gpu" if torch.cuda.is_available() else "cpu"
     why = "a CUDA device is available" if profile == "gpu" else "no CUDA device was found"
     print(f"[splatrig] profile={profile} ({why}); override with profile=cpu|gpu", file=sys.stderr)
-    return [*argv, f"profile={profile}"]
+    return [argv[0], f"profile={profile}", *argv[1:]]  # before any --cfg/--help flags, which take arguments
 
 
 def quiet_libraries() -> None:

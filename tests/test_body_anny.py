@@ -51,6 +51,8 @@ def _anny_cache_ready() -> bool:
 
 
 ASSET_READY = asset_path(dict(PHENOTYPE_DEFAULTS)).exists()
+
+
 def _no_mark(f):
     return f
 
@@ -168,9 +170,15 @@ def test_posed_vertices_match_anny_forward(anny_full, anny_reduced):
     # reduced skeleton: folded bones at identity reproduce Anny's output too
     red_pose = pose[:, anny_reduced.kept_full_indices]
     with torch.no_grad():
-        ref_red = model(pose_parameters=anny_pose_parameters(anny_reduced.full_pose(red_pose), rest_poses,
-                                                             model.reference_bone_orientations,
-                                                             a_rest["rest_bone_heads"][0], model.bone_parents))
+        ref_red = model(
+            pose_parameters=anny_pose_parameters(
+                anny_reduced.full_pose(red_pose),
+                rest_poses,
+                model.reference_bone_orientations,
+                a_rest["rest_bone_heads"][0],
+                model.bone_parents,
+            )
+        )
     err_red = (anny_reduced.posed_vertices(red_pose.float()).double() - ref_red["vertices"]).abs().max().item()
     assert err_red < 1e-5, err_red
     print(f"anny forward vs ours: float64 {err64:.2e}, float32 {err32:.2e}, reduced float32 {err_red:.2e}")

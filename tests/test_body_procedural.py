@@ -83,8 +83,10 @@ def test_elbow_bend_moves_forearm_only():
     # the hand tip rotates 90 degrees about the elbow: from +x to +y of the elbow
     elbow = body.rest_joints[body.joint_names.index("lowerarm.L")]
     tip = int(body.rest_vertices[:, 0].argmax())
-    expected = elbow + torch.tensor([0.0, body.rest_vertices[tip, 0] - elbow[0], 0.0]) + torch.tensor(
-        [-(body.rest_vertices[tip, 1] - elbow[1]), 0.0, body.rest_vertices[tip, 2] - elbow[2]]
+    expected = (
+        elbow
+        + torch.tensor([0.0, body.rest_vertices[tip, 0] - elbow[0], 0.0])
+        + torch.tensor([-(body.rest_vertices[tip, 1] - elbow[1]), 0.0, body.rest_vertices[tip, 2] - elbow[2]])
     )
     assert (posed[tip] - expected).abs().max() < 1e-5
     assert moved[forearm].min() > 0.01

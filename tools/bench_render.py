@@ -99,10 +99,11 @@ def main() -> None:
 
         def frame(i: int, novel_pose: bool) -> None:
             pose = poses[i % len(poses) if novel_pose else 0][None]
+            dev = args.device
             batch = FrameBatch(
-                image=torch.empty(1, res, res, 3, device=args.device), mask=torch.empty(1, res, res, device=args.device),
-                boundary=torch.empty(1, res, res, device=args.device), cameras=cams.index(i % cams.num),
-                frame=torch.zeros(1, dtype=torch.long, device=args.device), pose=pose,
+                image=torch.empty(1, res, res, 3, device=dev), mask=torch.empty(1, res, res, device=dev),
+                boundary=torch.empty(1, res, res, device=dev), cameras=cams.index(i % cams.num),
+                frame=torch.zeros(1, dtype=torch.long, device=dev), pose=pose,
             )  # fmt: skip
             avatar(batch, sh_degree=3)
 

