@@ -119,9 +119,13 @@ class LBSDeformerBase(Deformer):
         if gaussians.skin_weights is not None:
             w = gaussians.skin_weights
             aux["weight_std"] = w.new_zeros(gaussians.num)
+        elif self.report_weight_std and torch.is_grad_enabled():
+            # one lookup for the centre and the six L_w points: the field (and F_dw) cost is per call, then per point
+            points = torch.cat([gaussians.means.unsqueeze(-2), six_points(gaussians)], dim=-2)  # [N, 7, 3]
+            w7 = self.weights(points)  # [N, 7, J]
+            w = w7[:, 0]
+            aux["weight_std"] = weight_std(w7[:, 1:])
         else:
             w = self.weights(gaussians.means)  # [N, J]
-            if self.report_weight_std and torch.is_grad_enabled():
-                aux["weight_std"] = weight_std(self.weights(six_points(gaussians)))
         posed = apply_lbs(gaussians, w, bone_transforms, self.stretch)
         return DeformOutput(posed=posed, weights=w, aux=aux)

@@ -31,7 +31,9 @@ def choose_profile(argv: list[str]) -> list[str]:
     profile = "gpu" if torch.cuda.is_available() else "cpu"
     why = "a CUDA device is available" if profile == "gpu" else "no CUDA device was found"
     print(f"[splatrig] profile={profile} ({why}); override with profile=cpu|gpu", file=sys.stderr)
-    return [argv[0], f"profile={profile}", *argv[1:]]  # before any --cfg/--help flags, which take arguments
+    # argparse wants Hydra's overrides in one run: put ours just before the first one (or last when there are none)
+    first = next((i for i, a in enumerate(argv[1:], 1) if "=" in a and not a.startswith("-")), len(argv))
+    return [*argv[:first], f"profile={profile}", *argv[first:]]
 
 
 def quiet_libraries() -> None:
@@ -43,6 +45,8 @@ def quiet_libraries() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\).*")
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+    # We checkpoint after the optimizer step on purpose: a resumed run continues from the state after that step.
+    warnings.filterwarnings("ignore", message=".*ModelCheckpoint with manual optimization.*")
 
 
 def run(cfg: DictConfig) -> float | None:

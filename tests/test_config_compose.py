@@ -113,3 +113,25 @@ def test_experiment_wins_over_defaults_and_profile_is_overridable():
     assert cfg.profile.name == "gpu"
     cfg = _compose(["+experiment=paper_full", "profile=cpu"])
     assert cfg.trainer.max_steps == cfg.profile.max_steps
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train.py"],
+        ["train.py", "+experiment=static_fit", "--cfg", "job"],
+        ["train.py", "--cfg", "job", "--config-name", "ablations", "+experiment=no_corrector"],
+        ["train.py", "-m", "+experiment=static_fit,paper_full", "seed=1"],
+    ],
+)
+def test_profile_is_added_where_hydras_parser_accepts_it(argv: list[str], monkeypatch):
+    from hydra._internal.utils import get_args_parser
+
+    from framework.train import choose_profile
+
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    out = choose_profile(argv)
+    args = get_args_parser().parse_args(out[1:])
+    assert "profile=cpu" in args.overrides
+    assert [a for a in args.overrides if a != "profile=cpu"] == [a for a in argv[1:] if "=" in a and a[0] != "-"]
+    assert choose_profile([*argv, "profile=gpu"]) == [*argv, "profile=gpu"]  # the user's choice wins
