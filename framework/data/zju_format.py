@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from framework.errors import SplatrigError
+
 ANNOTS = "annots.npy"
 MASK_DIRS = ("mask_cihp", "mask")
 PARAMS_DIRS = ("params", "new_params")
@@ -51,7 +53,7 @@ VERTICES_DIRS = ("vertices", "new_vertices")
 _CORE313 = re.compile(r"_\((\d+)\)_(\d+)_")  # CoreView_313_Camera_(1)_0001_2019-... -> camera 1, frame 1
 
 
-class ZjuFormatError(ValueError):
+class ZjuFormatError(SplatrigError, ValueError):
     """A sequence on disk does not follow the layout; the message names the file, what was expected and found."""
 
 
