@@ -32,7 +32,7 @@ import numpy as np
 
 from framework.data import raycast
 
-STUDIO_VERSION = 1
+STUDIO_VERSION = 2
 LIGHT = raycast.Shading(direction=(0.45, -0.55, 0.7), ambient=0.32, diffuse=0.78, shadows=True)
 
 
