@@ -69,6 +69,9 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
                 err = (rgb[0] - batch.image[0]).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4
                 grid = torch.cat([rgb[0], batch.image[0], err.clamp(0, 1)], dim=1)
                 iio.imwrite(out_dir / f"{split}_{i:05d}.png", (grid.cpu().numpy() * 255).round().astype("uint8"))
+                writer = getattr(logger, "experiment", None)
+                if writer is not None and hasattr(writer, "add_image"):
+                    writer.add_image(f"eval_{split}/render|gt|error/{i:05d}", grid.permute(2, 0, 1).cpu(), step)
         for name, vals in values.items():
             if vals:
                 summary[f"{split}/{name}"] = float(sum(vals) / len(vals))
