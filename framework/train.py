@@ -31,9 +31,17 @@ def choose_profile(argv: list[str]) -> list[str]:
     profile = "gpu" if torch.cuda.is_available() else "cpu"
     why = "a CUDA device is available" if profile == "gpu" else "no CUDA device was found"
     print(f"[splatrig] profile={profile} ({why}); override with profile=cpu|gpu", file=sys.stderr)
+    added = [f"profile={profile}"]
+    chose_rasterizer = any(a.split("=")[0].lstrip("+~") == "rasterizer" for a in argv[1:])
+    if profile == "gpu" and not chose_rasterizer:
+        import importlib.util
+
+        if importlib.util.find_spec("gsplat") is not None:
+            added.append("rasterizer=gsplat")
+            print("[splatrig] rasterizer=gsplat (CUDA kernels); override with rasterizer=torch_ref", file=sys.stderr)
     # argparse wants Hydra's overrides in one run: put ours just before the first one (or last when there are none)
     first = next((i for i, a in enumerate(argv[1:], 1) if "=" in a and not a.startswith("-")), len(argv))
-    return [*argv[:first], f"profile={profile}", *argv[first:]]
+    return [*argv[:first], *added, *argv[first:]]
 
 
 def quiet_libraries() -> None:

@@ -152,3 +152,17 @@ def test_profile_is_added_where_hydras_parser_accepts_it(argv: list[str], monkey
     assert "profile=cpu" in args.overrides
     assert [a for a in args.overrides if a != "profile=cpu"] == [a for a in argv[1:] if "=" in a and a[0] != "-"]
     assert choose_profile([*argv, "profile=gpu"]) == [*argv, "profile=gpu"]  # the user's choice wins
+
+
+def test_gpu_profile_picks_the_gsplat_backend_unless_told_otherwise(monkeypatch):
+    import importlib.util
+
+    from framework.train import choose_profile
+
+    monkeypatch.setattr("torch.cuda.is_available", lambda: True)
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: object() if n == "gsplat" else real_find_spec(n, *a))
+    assert choose_profile(["t", "+experiment=paper_full"]) == ["t", "profile=gpu", "rasterizer=gsplat",
+                                                                 "+experiment=paper_full"]  # fmt: skip
+    kept = ["t", "+experiment=paper_full", "rasterizer=jax"]
+    assert choose_profile(kept) == ["t", "profile=gpu", "+experiment=paper_full", "rasterizer=jax"]
