@@ -127,7 +127,7 @@ class Avatar(nn.Module):
     def _pose_key(self, batch: FrameBatch) -> bytes:
         parts = [batch.frame[:1]]
         parts += [t[:1] for t in (batch.pose, batch.root) if t is not None]
-        return b"".join(p.detach().cpu().numpy().tobytes() for p in parts) + bytes([self.gaussians.num % 251])
+        return b"".join(p.detach().cpu().numpy().tobytes() for p in parts)
 
     def bone_transforms(self, batch: FrameBatch) -> tuple[Tensor | None, Tensor | None]:
         """World-space skinning transforms [J, 4, 4] and the pose features [P] for the corrector."""

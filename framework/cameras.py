@@ -28,8 +28,8 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
 def orbit_cameras(center: Tensor, radius: float, height: float, num: int, width: int, height_px: int,
                   fov_deg: float = 40.0, up: tuple[float, float, float] = (0.0, 0.0, 1.0),
-                  start_deg: float = 0.0) -> Cameras:  # fmt: skip
-    """`num` cameras evenly spaced on a horizontal circle around `center`, all looking at it."""
+                  start_deg: float = 0.0, turns: float = 1.0) -> Cameras:  # fmt: skip
+    """`num` cameras evenly spaced over `turns` circles around `center` (horizontal), all looking at it."""
     up_t = torch.tensor(up, dtype=torch.float32)
     up_t = up_t / up_t.norm()
     # two horizontal axes perpendicular to `up`
@@ -40,7 +40,7 @@ def orbit_cameras(center: Tensor, radius: float, height: float, num: int, width:
     K = torch.tensor([[f, 0, width / 2], [0, f, height_px / 2], [0, 0, 1]], dtype=torch.float32)
     w2c = []
     for i in range(num):
-        t = math.radians(start_deg) + 2 * math.pi * i / num
+        t = math.radians(start_deg) + 2 * math.pi * turns * i / num
         eye = center + radius * (math.cos(t) * a + math.sin(t) * b) + height * up_t
         w2c.append(look_at(eye, center, up_t))
     return Cameras(K=K.expand(num, 3, 3).clone(), world_to_cam=torch.stack(w2c), width=width, height=height_px)

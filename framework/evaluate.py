@@ -116,7 +116,7 @@ def datamodule_for(module):
     def build_split(split: str):
         return build_component("dataset", cfg["data"], group="data", split=split)
 
-    return FrameDataModule(build_split, eval_splits=cfg["eval"]["splits"], val_split=cfg["eval"]["val_split"])
+    return FrameDataModule(build_split, val_split=cfg["eval"]["val_split"])
 
 
 def main() -> int:

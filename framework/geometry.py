@@ -83,13 +83,3 @@ def axis_angle_to_rotmat(aa: Tensor) -> Tensor:
     Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*aa.shape[:-1], 3, 3)
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(Kx)
     return eye + a[..., None] * Kx + b[..., None] * (Kx @ Kx)
-
-
-def rotmat_to_axis_angle(R: Tensor) -> Tensor:
-    """[..., 3, 3] -> [..., 3] through the quaternion (stable near 0 and pi)."""
-    q = rotmat_to_quat(R)
-    xyz = q[..., 1:]
-    sin_half = xyz.norm(dim=-1, keepdim=True)
-    angle = 2 * torch.atan2(sin_half, q[..., :1])
-    scale = torch.where(sin_half > 1e-8, angle / sin_half.clamp_min(1e-12), 2 / q[..., :1].clamp_min(1e-12))
-    return xyz * scale

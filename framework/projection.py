@@ -9,7 +9,6 @@ Culled entries keep finite values (and finite gradients, which are zero) so no N
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -33,12 +32,6 @@ class Projection:
     half_extents: Tensor  # [C, N, 2] float half width/height of the alpha >= 1/255 box in pixels (no grad)
     radii: Tensor  # [C, N] int32 ceil(max half extent); 0 where culled
     valid: Tensor  # [C, N] bool
-
-
-def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
-    """Sigma = R S S^T R^T, [N, 4] wxyz x [N, 3] -> [N, 3, 3]."""
-    M = quat_to_rotmat(quats) * scales.unsqueeze(-2)  # [N, 3, 3] = R S
-    return M @ M.transpose(-1, -2)
 
 
 def project_gaussians(
@@ -114,10 +107,3 @@ def project_gaussians(
     return Projection(
         means2d=means2d, conics=conics, cov2d=cov2d, depths=z, half_extents=half, radii=radii, valid=valid
     )
-
-
-def extend_for_opacity(opacity: float) -> float:
-    """Box half extent in standard deviations for one opacity (0 when nothing can reach alpha 1/255)."""
-    if opacity < ALPHA_MIN:
-        return 0.0
-    return min(EXTEND_MAX, math.sqrt(2.0 * math.log(opacity / ALPHA_MIN)))

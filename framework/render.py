@@ -56,9 +56,8 @@ def render_sequence(module, dm, motion: str, cameras: str, camera_index: int, tu
         center = bounds.mean(0)
         dist = float(train_cams.centers().sub(center).norm(dim=-1).median())
         fov = 2 * math.degrees(math.atan(0.5 * train_cams.width / float(train_cams.K[0, 0, 0])))
-        orbit = orbit_cameras(center, dist, 0.0, max(n, 1), width, height, fov_deg=fov)
-        step = max(int(round(n / max(turns, 1e-6))), 1)
-        cams = [orbit.index((i * n // step) % n if turns else 0) for i in range(n)]
+        orbit = orbit_cameras(center, dist, 0.0, max(n, 1), width, height, fov_deg=fov, turns=turns)
+        cams = [orbit.index(i) for i in range(n)]
     elif cameras == "fixed":
         scale = width / train_cams.width
         K = train_cams.K[camera_index : camera_index + 1].clone()

@@ -87,7 +87,6 @@ def run(cfg: DictConfig) -> float | None:
 
     dm = FrameDataModule(
         build_split,
-        eval_splits=list(cfg.eval.splits),
         val_split=str(cfg.eval.val_split),
         val_max_items=int(cfg.eval.val_max_items),
         num_workers=int(cfg.data_loader.num_workers),
@@ -100,7 +99,6 @@ def run(cfg: DictConfig) -> float | None:
         "num_frames_total": int(train_set.num_frames_total),
         "body_name": train_set.body_name,
         "num_joints": None if poses is None else int(poses.shape[1]),
-        "num_train_items": len(train_set),
     }
     module = SplatModule(container, data_info)
 

@@ -45,10 +45,6 @@ class Gaussians:
     def opacities(self) -> Tensor:
         return torch.sigmoid(self.opacity_logits)  # [N]
 
-    @property
-    def sh_degree_max(self) -> int:
-        return int(round(self.sh.shape[1] ** 0.5)) - 1
-
     def replace(self, **changes: Tensor | None) -> Gaussians:
         return replace(self, **changes)
 
@@ -80,9 +76,6 @@ class Cameras:
 
     def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> Cameras:
         return Cameras(self.K.to(device, dtype), self.world_to_cam.to(device, dtype), self.width, self.height)
-
-    def cam_to_world(self) -> Tensor:
-        return torch.linalg.inv(self.world_to_cam)  # [C, 4, 4]
 
     def centers(self) -> Tensor:
         """Camera centres in world coordinates, [C, 3]."""

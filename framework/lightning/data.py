@@ -40,7 +40,6 @@ class FrameDataModule(L.LightningDataModule):
     def __init__(
         self,
         build_split: Callable[[str], MultiViewDataset],
-        eval_splits: Sequence[str] = ("novel_view",),
         val_split: str = "novel_view",
         val_max_items: int = 8,
         num_workers: int = 0,
@@ -48,7 +47,6 @@ class FrameDataModule(L.LightningDataModule):
     ) -> None:
         super().__init__()
         self.build_split = build_split
-        self.eval_splits = list(eval_splits)
         self.val_split = val_split
         self.val_max_items = val_max_items
         self.num_workers = num_workers
@@ -88,6 +86,3 @@ class FrameDataModule(L.LightningDataModule):
         take = min(n, self.val_max_items)
         idx = torch.linspace(0, n - 1, take).round().long().unique().tolist() if n else []
         return self._loader(torch.utils.data.Subset(dataset, idx))
-
-    def eval_dataloader(self, split: str) -> DataLoader:
-        return self._loader(self.split(split))
