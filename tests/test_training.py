@@ -147,3 +147,18 @@ def test_paper_full_fast_dev_run_on_cpu(tmp_path: Path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "profile=cpu" in proc.stderr
     assert "results:" in proc.stdout
+
+
+def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: Path):
+    """`python -m framework.evaluate ckpt=...` must render the model as training left it (e.g. its SH degree,
+    which follows the step count), so its table equals the one printed at the end of training."""
+    proc = _train(tmp_path, "trainer.max_steps=40", "gaussians.sh_increase_every=10")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = _run_dirs(tmp_path)[-1]
+    env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp_path / "cache"))
+    out = tmp_path / "standalone"
+    cmd = [sys.executable, "-m", "framework.evaluate", f"ckpt={run / 'checkpoints' / 'last.ckpt'}",
+           "metrics=[psnr,ssim]", f"out_dir={out}"]  # fmt: skip
+    ev = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    assert (out / "summary.md").read_text() == (run / "eval" / "summary.md").read_text()

@@ -67,6 +67,7 @@ class SplatModule(L.LightningModule):
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
         )
         self._step_started = time.perf_counter()
+        self._loaded_steps = 0
 
     # ----------------------------------------------------------------------------------------------- construction
     def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
@@ -117,8 +118,13 @@ class SplatModule(L.LightningModule):
                 group["lr"] = float(lr["means"]) * self.scene_scale * math.exp(t * math.log(ratio))
 
     # ---------------------------------------------------------------------------------------------------- steps
+    def trained_steps(self) -> int:
+        """Steps trained so far: the trainer's count while attached, else the loaded checkpoint's (the SH degree
+        and other schedules follow it, so `python -m framework.evaluate` renders what training evaluated)."""
+        return self.global_step if self._trainer is not None else self._loaded_steps
+
     def render_batch(self, batch: FrameBatch, step: int | None = None):
-        step = self.global_step if step is None else step
+        step = self.trained_steps() if step is None else step
         return self.avatar(batch, sh_degree=self.sh_degree(step))
 
     def training_step(self, batch: FrameBatch, batch_idx: int) -> Tensor:
@@ -196,6 +202,7 @@ class SplatModule(L.LightningModule):
         if stored_cfg is not None:
             _check_compatible(stored_cfg, self.cfg)
         self.avatar.gaussians.resize_to(checkpoint["state_dict"], "avatar.gaussians.")
+        self._loaded_steps = int(checkpoint.get("global_step", 0))
         state = checkpoint.get("densifier_state")
         if state is not None:
             self.densifier_state = {k: (v.to(self.device) if isinstance(v, Tensor) else v) for k, v in state.items()}
