@@ -79,7 +79,7 @@ def render_sequence(module, dm, motion: str, cameras: str, camera_index: int, tu
             pose=poses[i : i + 1].to(device),
             root=None if roots is None else roots[i : i + 1].to(device),
         )
-        rgb = module.render_batch(batch, step=10**9).render.rgb[0].clamp(0, 1)
+        rgb = module.render_batch(batch).render.rgb[0].clamp(0, 1)
         images.append((rgb.cpu().numpy() * 255).round().astype(np.uint8))
     return images
 
