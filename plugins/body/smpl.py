@@ -23,16 +23,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from framework.data.motion_files.smpl_skeleton import SMPL_JOINT_NAMES
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
 from framework.kinematics import forward_kinematics, skin_points
 from framework.registry import register
-
-SMPL_JOINT_NAMES = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
-    "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder",
-    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hand", "right_hand",
-]  # fmt: skip
 
 LICENSORS = {"smpl": "https://smpl.is.tue.mpg.de", "smplx": "https://smpl-x.is.tue.mpg.de"}
 
