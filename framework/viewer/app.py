@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import warnings
 
 import numpy as np
 
@@ -63,7 +64,7 @@ class ViewerApp:
             self.load = gui.add_button("load motion file")
         with gui.add_folder("Pose", visible=bool(s.joint_names)):
             joints = s.joint_names or ["(none)"]
-            self.joint = gui.add_dropdown("joint", joints, initial_value=joints[min(1, len(joints) - 1)])
+            self.joint = gui.add_dropdown("joint", joints, initial_value=s.default_joint or joints[0])
             self.rotation = [gui.add_slider(f"rotate {a} (deg)", -180, 180, 1, 0) for a in POSE_AXES]
             self.reset = gui.add_button("reset pose")
         with gui.add_folder("Model"):
@@ -156,7 +157,9 @@ class ViewerApp:
             return
         width, height = render_size(aspect, self.max_side)
         image = self.session.render(viser_camera(wxyz, position, fov, width, height))
-        client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
+        with warnings.catch_warnings():  # a browser that closed meanwhile just misses this frame
+            warnings.filterwarnings("ignore", message="Queued a .* on a closed connection")
+            client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
         stats = self.session.last
         fps = 1.0 / max(stats.seconds, 1e-6)
         self.status.content = (f"**{fps:.1f}** fps · **{stats.num_gaussians}** Gaussians · "

@@ -16,7 +16,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from framework.animation.frames import render_rgb, to_uint8
-from framework.animation.sources import SPLITS, load_motion
+from framework.animation.sources import SPLITS, body_rig, load_motion
 from framework.data.motion_files import Motion
 from framework.errors import SplatrigError
 from framework.registry import RASTERIZERS
@@ -67,6 +67,15 @@ class ViewerSession:
     @property
     def joint_names(self) -> list[str]:
         return [] if self.avatar.body is None else list(self.avatar.body.joint_names)
+
+    @property
+    def default_joint(self) -> str | None:
+        """The joint the pose sliders start on: the left shoulder when the body names one (the most telling)."""
+        if not self.joint_names:
+            return None
+        rig = body_rig(self.avatar.body)
+        k = rig.index.get("shoulder.L", 1) if rig is not None else min(1, len(self.joint_names) - 1)
+        return self.joint_names[k]
 
     @property
     def has_corrector(self) -> bool:
