@@ -119,3 +119,22 @@ def test_package_reposes_like_the_avatar(package, monkeypatch):
         err = (ours - theirs).abs()
         assert err.max() < 2e-3 and err.mean() < 1e-5, (f, float(err.max()), float(err.mean()))
         assert (ours - uncorrected).abs().max() > 2e-2  # the stored corrections are what makes it match
+
+
+def test_reading_the_package_back_poses_the_same_gaussians(package, monkeypatch):
+    """framework.formats.animatable.pose_frame (for Python users of a package) gives the avatar's posed Gaussians."""
+    from framework.animation.frames import posed_gaussians
+    from framework.animation.sources import load_motion
+    from framework.formats.animatable import pose_frame, read_package
+
+    ckpt, cache, out, _ = package
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
+    module, dm = load_tiny(ckpt)
+    motion, frames = load_motion(module, dm, "train")
+    pkg = read_package(out / "train_animatable")
+    assert pkg.num_frames == motion.num_frames and pkg.corrections is not None
+    for f in (0, motion.num_frames - 1):
+        ours = posed_gaussians(module, torch.as_tensor(motion.poses[f]), torch.as_tensor(motion.roots[f]), frames[f])
+        theirs = pose_frame(pkg, f)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            assert torch.allclose(getattr(theirs, name), getattr(ours, name), atol=1e-5), name

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import traceback
 import warnings
 
 import numpy as np
@@ -68,8 +69,10 @@ class ViewerApp:
             self.rotation = [gui.add_slider(f"rotate {a} (deg)", -180, 180, 1, 0) for a in POSE_AXES]
             self.reset = gui.add_button("reset pose")
         with gui.add_folder("Model"):
-            self.corrector = gui.add_checkbox("appearance corrector (F_a)", True, disabled=not s.has_corrector)
-            self.residual = gui.add_checkbox("weight residual (F_dw)", True, disabled=not s.has_residual)
+            on = bool(getattr(s.avatar.corrector, "enabled", True))
+            self.corrector = gui.add_checkbox("appearance corrector (F_a)", on, disabled=not s.has_corrector)
+            on = bool(getattr(s.avatar.deformer, "enabled", True))
+            self.residual = gui.add_checkbox("weight residual (F_dw)", on, disabled=not s.has_residual)
             backends = sorted(set(s.available_backends()) | {s.backend})
             self.backend = gui.add_dropdown("rasterizer", backends, initial_value=s.backend)
             self.resolution = gui.add_slider("resolution (px)", 64, 1024, 32, self.max_side)
@@ -190,7 +193,11 @@ class ViewerApp:
                 todo, self._dirty = self._dirty, set()
             for client_id, client in list(self.server.get_clients().items()):
                 if client_id in todo:
-                    self._render_client(client)
+                    try:
+                        self._render_client(client)
+                    except Exception as exc:  # keep serving: a failing backend must not take the page down
+                        traceback.print_exc()
+                        client.add_notification("render failed", f"{type(exc).__name__}: {exc}", color="red")
 
     def stop(self) -> None:
         self._stop.set()

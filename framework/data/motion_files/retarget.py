@@ -139,7 +139,11 @@ def retarget(src: SourceMotion, rig: Rig, reference_root: np.ndarray | None = No
     u_t = R_ref @ B_t[:, 1]
 
     def horizontal(v: np.ndarray, up: np.ndarray) -> np.ndarray:
-        return _unit(v - (v @ up) * up)
+        """v without its component along `up`; any horizontal direction when v is vertical (lying on the back)."""
+        h = v - (v @ up) * up
+        if np.linalg.norm(h) < 1e-6:
+            h = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        return _unit(h)
 
     h_s = horizontal(G_s[0, src_index["pelvis"]] @ B_s[:, 2], u_s)
     h_t = horizontal(R_ref @ B_t[:, 2], u_t)
