@@ -14,6 +14,9 @@ from pathlib import Path
 # JavaScript: the number of frames the viewer says it has served (its status line), 0 before the first
 FRAMES_SERVED = "(document.body.innerText.match(/frames served: (\\d+)/) || [null, 0])[1] * 1"
 
+# JavaScript: the render rate the status line reports (frames per second of the last render), 0 before the first
+RENDER_FPS = "(document.body.innerText.match(/([0-9.]+) fps/) || [null, 0])[1] * 1"
+
 # JavaScript: close viser's notifications (e.g. "Software WebGL rendering detected"), which cover the canvas
 CLOSE_NOTIFICATIONS = "document.querySelectorAll('.mantine-Notification-closeButton').forEach(b => b.click())"
 
@@ -34,19 +37,23 @@ SLIDER = """(() => {{
 
 
 def settled_screenshot(browser, quiet: float = 2.0, timeout: float = 120.0) -> bytes:
-    """A screenshot once the viewer has served no new frame for `quiet` seconds and two screenshots in a row agree
-    (the last frame has been rendered, sent and drawn; renders can take seconds on a busy CPU)."""
+    """A screenshot once the viewer has served no new frame for a while and two screenshots in a row agree: the last
+    change has been rendered, sent and drawn. "A while" is `quiet` seconds, or three render times when the status
+    line reports slower renders (a busy CPU can take seconds per frame, and a change made during a render is only
+    rendered after it)."""
     deadline = time.monotonic() + timeout
     served, since = browser.evaluate(FRAMES_SERVED), time.monotonic()
     last = None
     while True:
         time.sleep(0.5)
+        fps = browser.evaluate(RENDER_FPS)
+        wait = max(quiet, 3.0 / fps if fps else quiet)
         now_served = browser.evaluate(FRAMES_SERVED)
         if now_served != served:
             served, since, last = now_served, time.monotonic(), None
             continue
         shot = browser.screenshot()
-        if time.monotonic() - since >= quiet and shot == last:
+        if time.monotonic() - since >= wait and shot == last:
             return shot
         last = shot
         if time.monotonic() > deadline:
