@@ -145,14 +145,17 @@ def read_image(path: Path) -> np.ndarray:
     return img[..., ::-1].copy()
 
 
-def read_mask_file(path: Path) -> np.ndarray:
-    """uint8 [H, W] in {0, 1}: foreground wherever the stored value (first channel) is non-zero."""
+def read_mask_file(path: Path, any_channel: bool = False) -> np.ndarray:
+    """uint8 [H, W] in {0, 1}: foreground wherever the stored value (first channel) is non-zero; with `any_channel`,
+    wherever any colour channel is (part-label masks such as SCHP's palette PNGs colour some parts with R = 0)."""
     import cv2
 
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
         raise ZjuFormatError(f"mask file {path} exists but cannot be decoded")
     if m.ndim == 3:
+        if any_channel:
+            return (m[..., :3] != 0).any(-1).astype(np.uint8)
         m = m[..., 2] if m.shape[2] >= 3 else m[..., 0]  # cv2 gives BGR(A): the first stored channel is R
     return (m != 0).astype(np.uint8)
 
@@ -338,6 +341,11 @@ class ZjuCameras:
     R: np.ndarray  # [C, 3, 3]
     T_mm: np.ndarray  # [C, 3]
 
+    @classmethod
+    def from_metres(cls, K: np.ndarray, D: np.ndarray, R: np.ndarray, T_m: np.ndarray) -> ZjuCameras:
+        """The same rig from a translation in metres (EasyMocap's extri.yml), K in OpenCV's convention."""
+        return cls(K=K, D=D, R=R, T_mm=np.asarray(T_m, dtype=np.float64) * 1000.0)
+
     @property
     def num(self) -> int:
         return int(self.K.shape[0])
@@ -381,6 +389,7 @@ class ZjuSequence:
         self.cameras = self._parse_cams(annots["cams"], path)
         self.ims = self._parse_ims(annots["ims"], path)
         self.camera_dirs = [os.path.dirname(p) for p in self.ims[0]]
+        self.camera_names = [os.path.basename(d) or d for d in self.camera_dirs]
         self.file_numbers = [frame_number_from_path(row[0]) for row in self.ims]
         self.params_dir = next((d for d in PARAMS_DIRS if (self.root / d).is_dir()), None)
         self.vertices_dir = next((d for d in VERTICES_DIRS if (self.root / d).is_dir()), None)
@@ -490,9 +499,13 @@ class ZjuSequence:
             f"mask of frame {frame}, view {view} is missing: looked for {', '.join(str(c) for c in candidates)}"
         )
 
+    def read_mask(self, path: Path) -> np.ndarray:
+        """uint8 [H, W] in {0, 1}: the first stored channel is non-zero (Animatable NeRF's reading)."""
+        return read_mask_file(path)
+
     def mask(self, frame: int, view: int, mask_dir: str = "auto") -> np.ndarray:
         """uint8 [H, W] in {0, 1}."""
-        return read_mask_file(self.mask_path(frame, view, mask_dir))
+        return self.read_mask(self.mask_path(frame, view, mask_dir))
 
     def _numbered(self, dirname: str | None, kind: str, frame: int) -> Path:
         n = self.file_numbers[frame]

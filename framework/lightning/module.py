@@ -36,7 +36,7 @@ class SplatModule(L.LightningModule):
         bounds = torch.tensor(data_info["bounds"], dtype=torch.float32)  # [2, 3]
         self.scene_scale = float((bounds[1] - bounds[0]).norm() / 2)
 
-        body = build_component("body", cfg["body"])
+        body = build_component("body", with_fitted_betas(cfg["body"], data_info.get("betas")))
         if body is not None and data_info.get("num_joints") not in (None, body.num_joints):
             raise ConfigError(
                 f"body '{cfg['body']['name']}' has {body.num_joints} joints but the dataset's poses have "
@@ -48,7 +48,7 @@ class SplatModule(L.LightningModule):
         deformer = build_component("deformer", cfg["deformer"])
         rasterizer = build_component("rasterizer", cfg["rasterizer"])
         if body is not None:
-            corrector.bind(body.num_joints * 3)
+            corrector.bind(body.num_pose_features)
             canonical_bounds = _padded_box(body.rest_vertices, 0.1)
             deformer.bind(body, canonical_bounds)
         else:
@@ -231,6 +231,13 @@ def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
             + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
             + "`), or start a new run without ckpt_path."
         )
+
+
+def with_fitted_betas(body_node: dict[str, Any] | None, betas: list[float] | None) -> dict[str, Any] | None:
+    """The body node with `betas` filled from the data when the body takes betas and the config leaves them null."""
+    if body_node is None or betas is None or "betas" not in body_node or body_node["betas"] is not None:
+        return body_node
+    return {**body_node, "betas": list(betas)}
 
 
 def _padded_box(points: Tensor, margin: float) -> Tensor:

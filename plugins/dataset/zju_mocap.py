@@ -2,23 +2,9 @@
 (and the synthetic studio, written in the same layout). The layout itself is documented in
 `framework.data.zju_format`.
 
-What a sample is: one (frame, view) pair of the split, as a FrameBatch with B = 1.
-- Image: decoded on access (never all images as float32), undistorted with cv2's undistort maps (D applied, K kept,
-  as Neural Body / Animatable NeRF do), downscaled with INTER_AREA, composited over a black (or white) background with
-  the mask (Animatable NeRF's `mask_bkgd`), float32 in [0, 1]. An optional LRU cache keeps processed uint8 images.
-- Mask: foreground = stored value != 0, undistorted and area-downscaled like the image (fractional at the edge).
-- Boundary M_b: 0 within `boundary_px` output pixels of the silhouette (mask >= 0.5), computed once per (frame, view)
-  and cached in memory (bit-packed) and optionally on disk.
-- Cameras: K converted from OpenCV's pixel convention (centres at integers) to ours (centres at j + 0.5): cx += 0.5,
-  cy += 0.5; then for a downscale to W' x H', K'[0] = K[0] * W'/W and K'[1] = K[1] * H'/H. In the half-pixel convention
-  a pure scaling of image coordinates is exact for area resampling (output pixel j' covers input [s j', s j' + s),
-  centred at s (j' + 0.5)); the same formula in OpenCV's convention would be cx' = (cx + 0.5) / s - 0.5.
-  world_to_cam = [[R, T / 1000], [0, 1]] (T is stored in millimetres).
-- Body: pose = params["poses"] reshaped [J, 3] (the global-orient slot kept as stored), root = [[R(Rh), Th], [0, 1]]
-  (EasyMocap: world = R(Rh) M(pose, shapes) + Th about the origin), betas = params["shapes"].
-- bounds: the world-space box of the stored posed vertices (vertices/) over the split's frames, grown by
-  `bounds_margin` metres on every side. The body model is not known here, so this is not a canonical box; without
-  vertices/ it falls back to the Th positions grown by 1.2 m.
+Samples, images, masks, boundary masks, cameras, body parameters and bounds follow the conventions shared with every
+sequence reader (`framework.data.sequence_dataset`): stored K/D/R/T with T in millimetres, undistortion keeping K,
+area downscaling, root = [[R(Rh), Th], [0, 1]].
 
 Protocols (`protocol=`): presets that make results comparable with published tables.
 - "aninerf_4view": Animatable NeRF (zju3dv/animatable_nerf, configs/aninerf_{313,315,377,386}.yaml and
@@ -37,25 +23,16 @@ Explicit arguments always override the preset's values.
 
 from __future__ import annotations
 
-import logging
 import os
 import re
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-
-from framework.data.boundary import boundary_mask
-from framework.data.zju_format import ZjuFormatError, ZjuSequence, check_body_compatible
-from framework.interfaces import MultiViewDataset
+from framework.data.sequence_dataset import SequenceDataset
+from framework.data.zju_format import ZjuSequence, check_body_compatible
 from framework.registry import register
-from framework.types import Cameras, FrameBatch
 
 __all__ = ["ZjuMocapDataset", "check_body_compatible", "PROTOCOL_FRAMES"]
-
-log = logging.getLogger(__name__)
 
 # sequence -> (begin_ith_frame, num_train_frame, frame_interval, num_eval_frame, novel_pose_begin or None)
 PROTOCOL_FRAMES: dict[str, tuple[int, int, int, int, int | None]] = {
@@ -78,7 +55,6 @@ PROTOCOL_FRAMES: dict[str, tuple[int, int, int, int, int | None]] = {
 }
 PROTOCOLS = ("aninerf_4view", "dense")
 EVAL_FRAME_STEP = 30
-SPLITS = ("train", "novel_view", "novel_pose")
 
 
 def sequence_key(root: Path) -> str | None:
@@ -92,54 +68,8 @@ def sequence_key(root: Path) -> str | None:
     return None
 
 
-def _frame_range(spec: Any, num_frames: int, what: str) -> list[int]:
-    """(start, end, step) with end exclusive and clipped to the sequence; None = all frames; a list = those frames."""
-    if spec is None:
-        return list(range(num_frames))
-    spec = list(spec)
-    if len(spec) in (2, 3) and all(isinstance(x, (int, type(None))) for x in spec):
-        start, end = spec[0] or 0, spec[1]
-        step = spec[2] if len(spec) == 3 and spec[2] else 1
-        end = num_frames if end is None else min(int(end), num_frames)
-        frames = list(range(int(start), end, int(step)))
-    else:
-        frames = [int(x) for x in spec]
-    bad = [f for f in frames if not 0 <= f < num_frames]
-    if bad or not frames:
-        raise ValueError(
-            f"{what}={spec} selects {'no frames' if not frames else f'frames outside 0..{num_frames - 1}: {bad[:5]}'}"
-            f" (the sequence has {num_frames} frames); give (start, end, step) with end exclusive"
-        )
-    return frames
-
-
-class _LRU:
-    """A byte-budgeted LRU for processed uint8 arrays."""
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self.bytes = 0
-        self.items: OrderedDict[Any, tuple[np.ndarray, ...]] = OrderedDict()
-
-    def get(self, key: Any) -> tuple[np.ndarray, ...] | None:
-        if key in self.items:
-            self.items.move_to_end(key)
-            return self.items[key]
-        return None
-
-    def put(self, key: Any, value: tuple[np.ndarray, ...]) -> None:
-        size = sum(v.nbytes for v in value)
-        if size > self.max_bytes:
-            return
-        self.items[key] = value
-        self.bytes += size
-        while self.bytes > self.max_bytes:
-            _, old = self.items.popitem(last=False)
-            self.bytes -= sum(v.nbytes for v in old)
-
-
 @register("dataset", "zju_mocap")
-class ZjuMocapDataset(MultiViewDataset):
+class ZjuMocapDataset(SequenceDataset):
     """One split of a ZJU-MoCap-layout sequence; see the module docstring for conventions and protocols."""
 
     def __init__(
@@ -165,33 +95,19 @@ class ZjuMocapDataset(MultiViewDataset):
         boundary_cache: str = "memory",
         cache_dir: str | None = None,
     ) -> None:
-        super().__init__()
-        if split not in SPLITS:
-            raise ValueError(f"zju_mocap: split must be one of {SPLITS}, got '{split}'")
         if mask_dir not in ("auto", "mask", "mask_cihp"):
             raise ValueError(f"zju_mocap: mask_dir must be 'auto', 'mask' or 'mask_cihp', got '{mask_dir}'")
-        if boundary_cache not in ("memory", "disk"):
-            raise ValueError(f"zju_mocap: boundary_cache must be 'memory' or 'disk', got '{boundary_cache}'")
-        if not downscale >= 1.0:
-            raise ValueError(f"zju_mocap: downscale must be >= 1 (an image size divisor), got {downscale}")
-        self.root = Path(os.path.expanduser(str(root)))
-        self.seq = ZjuSequence(self.root)
-        self.split = split
-        self.downscale = float(downscale)
-        self.boundary_px = int(boundary_px)
-        self.mask_dir = mask_dir
-        if mask_dir != "auto" and not (self.root / mask_dir).is_dir():
+        root_path = Path(os.path.expanduser(str(root)))
+        seq = ZjuSequence(root_path)
+        if mask_dir != "auto" and not (root_path / mask_dir).is_dir():
             raise FileNotFoundError(
-                f"zju_mocap: mask_dir='{mask_dir}' but {self.root / mask_dir} does not exist; "
-                f"found {self.seq.available_mask_dirs() or 'no mask folder'}; use mask_dir=auto"
+                f"zju_mocap: mask_dir='{mask_dir}' but {root_path / mask_dir} does not exist; "
+                f"found {seq.available_mask_dirs() or 'no mask folder'}; use mask_dir=auto"
             )
-        self.background = 1.0 if white_background else 0.0
-        self.mask_background = mask_background
-        self.num_frames_total = self.seq.num_frames
-        C = self.seq.num_views
+        C = seq.num_views
 
         # ---- protocol
-        self.sequence = sequence or sequence_key(self.root)
+        self.sequence = sequence or sequence_key(root_path)
         views_all = list(range(C))
         preset_train_views: list[int] = views_all
         preset_train_frames: Any = None
@@ -215,279 +131,32 @@ class ZjuMocapDataset(MultiViewDataset):
             elif train_frames is None or (split == "novel_pose" and novel_pose_frames is None):
                 raise ValueError(
                     f"zju_mocap: protocol '{protocol}' has frame numbers for {', '.join(PROTOCOL_FRAMES)} but "
-                    f"{self.root} names none of them; pass sequence=<one of them>, or train_frames=[start, end, step] "
+                    f"{root_path} names none of them; pass sequence=<one of them>, or train_frames=[start, end, step] "
                     f"and novel_pose_frames=[start, end, step]"
                 )
-        self.train_views = list(train_views) if train_views is not None else preset_train_views
-        # like Animatable NeRF: test views default to every view not trained on (view 0 when that leaves none)
-        complement = [v for v in views_all if v not in self.train_views]
-        self.test_views = list(test_views) if test_views is not None else (complement or [0])
-        self.novel_pose_views = list(novel_pose_views) if novel_pose_views is not None else self.test_views
-        for name, vs in (("train_views", self.train_views), ("test_views", self.test_views),
-                         ("novel_pose_views", self.novel_pose_views)):  # fmt: skip
-            bad = [v for v in vs if not 0 <= int(v) < C]
-            if bad or not vs:
-                raise ValueError(f"zju_mocap: {name}={vs} must be non-empty view indices in 0..{C - 1} ({self.root})")
-        train_spec = train_frames if train_frames is not None else preset_train_frames
         pose_spec = novel_pose_frames if novel_pose_frames is not None else preset_pose_frames
-        step = int(eval_frame_step) if eval_frame_step is not None else preset_step
-        self.train_frame_ids = _frame_range(train_spec, self.num_frames_total, "train_frames")
-        if split == "train":
-            self.frame_ids, self.views = self.train_frame_ids, self.train_views
-        elif split == "novel_view":
-            self.frame_ids, self.views = self.train_frame_ids[::step], self.test_views
-        else:
-            if pose_spec is None:
-                raise ValueError(
-                    f"zju_mocap: split 'novel_pose' needs novel_pose_frames=[start, end, step] (or a protocol preset "
-                    f"that knows sequence '{self.sequence}')"
-                )
-            self.frame_ids = _frame_range(pose_spec, self.num_frames_total, "novel_pose_frames")[::step]
-            self.views = self.novel_pose_views
-
-        # ---- poses (whole sequence: pose-refinement tables are num_frames_total long)
-        self._load_params(body)
-
-        # ---- cameras (all views), image size from the first image of the split
-        first = self.seq.image(self.frame_ids[0], self.views[0])
-        self.src_height, self.src_width = first.shape[:2]
-        self.width = max(1, int(self.src_width / self.downscale))
-        self.height = max(1, int(self.src_height / self.downscale))
-        K = self.seq.cameras.K_splatrig()  # [C, 3, 3]
-        K[:, 0] *= self.width / self.src_width
-        K[:, 1] *= self.height / self.src_height
-        self.cameras = Cameras(
-            K=torch.tensor(K, dtype=torch.float32),
-            world_to_cam=torch.tensor(self.seq.cameras.world_to_cam(), dtype=torch.float32),
-            width=self.width,
-            height=self.height,
+        if split == "novel_pose" and pose_spec is None:
+            raise ValueError(
+                f"zju_mocap: split 'novel_pose' needs novel_pose_frames=[start, end, step] (or a protocol preset "
+                f"that knows sequence '{self.sequence}')"
+            )
+        super().__init__(
+            seq,
+            split=split,
+            train_views=list(train_views) if train_views is not None else preset_train_views,
+            test_views=test_views,
+            novel_pose_views=novel_pose_views,
+            train_frames=train_frames if train_frames is not None else preset_train_frames,
+            novel_pose_frames=pose_spec,
+            eval_frame_step=int(eval_frame_step) if eval_frame_step is not None else preset_step,
+            downscale=downscale,
+            boundary_px=boundary_px,
+            mask_dir=mask_dir,
+            body=body,
+            white_background=white_background,
+            mask_background=mask_background,
+            bounds_margin=bounds_margin,
+            cache_mb=cache_mb,
+            boundary_cache=boundary_cache,
+            cache_dir=cache_dir,
         )
-        self.bounds = self._compute_bounds(bounds_margin)
-
-        # ---- caches
-        self._lru = _LRU(int(cache_mb * 2**20))
-        self._undistort_maps: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
-        self._boundary_mem: dict[tuple[int, int], np.ndarray] = {}
-        self.boundary_computations = 0
-        self._boundary_dir: Path | None = None
-        if boundary_cache == "disk":
-            self._boundary_dir = self._pick_cache_dir(cache_dir)
-
-    # ------------------------------------------------------------------------------------------------ loading
-    def _load_params(self, body: str | None) -> None:
-        used = set(self.frame_ids) | set(self.train_frame_ids)
-        poses, rh, th, shapes = [], [], [], []
-        body_key = None
-        J = S = None
-        missing = []
-        last_exc: Exception | None = None
-        for f in range(self.num_frames_total):
-            try:
-                path = self.seq.params_path(f)
-            except FileNotFoundError as exc:
-                if f in used:
-                    raise
-                missing.append(f)
-                poses.append(None), rh.append(None), th.append(None), shapes.append(None)
-                last_exc = exc
-                continue
-            p = self.seq.params(f)
-            pose = np.asarray(p["poses"], dtype=np.float32).ravel()
-            if pose.size % 3:
-                raise ZjuFormatError(f"{path} (frame {f}): poses must hold J*3 values, found {pose.size}")
-            if J is None:
-                J = pose.size // 3
-            elif pose.size != J * 3:
-                raise ZjuFormatError(
-                    f"{path} (frame {f}): poses hold {pose.size // 3} joints but frame {self.frame_ids[0]}'s hold {J}"
-                )
-            r = np.asarray(p["Rh"], dtype=np.float32).ravel()
-            t = np.asarray(p["Th"], dtype=np.float32).ravel()
-            s = np.asarray(p.get("shapes", np.zeros(10)), dtype=np.float32).ravel()
-            S = s.size if S is None else S
-            for name, arr in (("poses", pose), ("Rh", r), ("Th", t), ("shapes", s)):
-                if not np.isfinite(arr).all():
-                    idx = int(np.where(~np.isfinite(arr))[0][0])
-                    where = f" (joint {idx // 3})" if name == "poses" else ""
-                    raise ZjuFormatError(
-                        f"{path} (frame {f}): '{name}' has a non-finite value {arr[idx]} at index {idx}{where}; "
-                        f"expected finite numbers. Re-fit or drop this frame from the split."
-                    )
-            if r.size != 3 or t.size != 3:
-                raise ZjuFormatError(f"{path} (frame {f}): Rh and Th must hold 3 values, found {r.size}, {t.size}")
-            if body_key is None and "body" in p:
-                body_key = str(p["body"])
-            poses.append(pose.reshape(J, 3)), rh.append(r), th.append(t), shapes.append(s)
-        if J is None:
-            raise FileNotFoundError(f"zju_mocap: no params file found under {self.root}: {last_exc}")
-        if missing:
-            log.warning(
-                "zju_mocap: %d frame(s) outside the split have no params (e.g. frame %d); using rest pose",
-                len(missing),
-                missing[0],
-            )
-        zeros = (np.zeros((J, 3), np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32),
-                 np.zeros(S, np.float32))  # fmt: skip
-        for f in missing:
-            poses[f], rh[f], th[f], shapes[f] = zeros
-        self._poses = torch.tensor(np.stack(poses))  # [F, J, 3]
-        self._betas = torch.tensor(np.stack(shapes))  # [F, S]
-        from framework.geometry import axis_angle_to_rotmat
-
-        roots = torch.eye(4).repeat(self.num_frames_total, 1, 1)  # [F, 4, 4]
-        roots[:, :3, :3] = axis_angle_to_rotmat(torch.tensor(np.stack(rh), dtype=torch.float64)).float()
-        roots[:, :3, 3] = torch.tensor(np.stack(th))
-        self._roots = roots
-        self.body_name = body or body_key or "smpl"
-
-    def _compute_bounds(self, margin: float) -> torch.Tensor:
-        if self.seq.vertices_dir is not None:
-            lo = np.full(3, np.inf)
-            hi = np.full(3, -np.inf)
-            for f in self.frame_ids:
-                v = self.seq.vertices(f)
-                lo = np.minimum(lo, v.min(0))
-                hi = np.maximum(hi, v.max(0))
-        else:
-            th = self._roots[self.frame_ids, :3, 3].numpy()
-            lo, hi = th.min(0) - 1.2, th.max(0) + 1.2
-        return torch.tensor(np.stack([lo - margin, hi + margin]), dtype=torch.float32)  # [2, 3]
-
-    def _pick_cache_dir(self, cache_dir: str | None) -> Path:
-        tag = f"boundary_{self.boundary_px}px_{self.width}x{self.height}_{self.mask_dir}"
-        if cache_dir is not None:
-            base = Path(cache_dir)
-        else:
-            base = self.root / ".splatrig_cache"
-            try:
-                base.mkdir(parents=True, exist_ok=True)
-                probe = base / ".probe"
-                probe.touch()
-                probe.unlink()
-            except OSError:  # read-only dataset: fall back to the project cache
-                from framework.paths import cache_dir as project_cache
-
-                base = project_cache() / "zju_boundary" / re.sub(r"[^A-Za-z0-9_.-]", "_", str(self.root.resolve()))
-        out = base / tag
-        out.mkdir(parents=True, exist_ok=True)
-        return out
-
-    # ------------------------------------------------------------------------------------------------ images
-    def _undistort(self, view: int, img: np.ndarray) -> np.ndarray:
-        """cv2.undistort(img, K, D) with the maps computed once per view (K kept as the new camera matrix)."""
-        import cv2
-
-        if view not in self._undistort_maps:
-            D = self.seq.cameras.D[view]
-            if not np.any(D):
-                self._undistort_maps[view] = None
-            else:
-                K = self.seq.cameras.K[view]
-                h, w = img.shape[:2]
-                self._undistort_maps[view] = cv2.initUndistortRectifyMap(K, D, None, K, (w, h), cv2.CV_16SC2)
-        maps = self._undistort_maps[view]
-        if maps is None:
-            return img
-        return cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-
-    def _resize(self, img: np.ndarray) -> np.ndarray:
-        import cv2
-
-        if img.shape[1] == self.width and img.shape[0] == self.height:
-            return img
-        return cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
-
-    def load_uint8(self, frame: int, view: int) -> tuple[np.ndarray, np.ndarray]:
-        """Processed (undistorted, downscaled) image uint8 [H, W, 3] and mask uint8 [H, W] (0..255 coverage)."""
-        key = (frame, view)
-        hit = self._lru.get(key)
-        if hit is not None:
-            return hit  # type: ignore[return-value]
-        img = self.seq.image(frame, view)
-        if img.shape[:2] != (self.src_height, self.src_width):
-            raise ZjuFormatError(
-                f"{self.seq.image_path(frame, view)} (frame {frame}, view {view}): image is {img.shape[1]}x"
-                f"{img.shape[0]} but the sequence's images are {self.src_width}x{self.src_height}"
-            )
-        mpath = self.seq.mask_path(frame, view, self.mask_dir)
-        from framework.data.zju_format import read_mask_file
-
-        m = read_mask_file(mpath)
-        if m.shape != img.shape[:2]:
-            raise ZjuFormatError(
-                f"{mpath} (frame {frame}, view {view}): mask is {m.shape[1]}x{m.shape[0]} (WxH) but its image "
-                f"{self.seq.image_path(frame, view).name} is {img.shape[1]}x{img.shape[0]}; masks must match their "
-                f"images pixel for pixel"
-            )
-        img = self._resize(self._undistort(view, img))
-        m = self._resize(self._undistort(view, m * np.uint8(255)))
-        out = (np.ascontiguousarray(img), np.ascontiguousarray(m))
-        self._lru.put(key, out)
-        return out
-
-    def boundary(self, frame: int, view: int, mask_u8: np.ndarray | None = None) -> np.ndarray:
-        """float32 [H, W] M_b of (frame, view), computed once and cached."""
-        key = (frame, view)
-        packed = self._boundary_mem.get(key)
-        disk = None if self._boundary_dir is None else self._boundary_dir / f"{frame:06d}_{view:03d}.npy"
-        if packed is None and disk is not None and disk.exists():
-            packed = np.load(disk)
-            self._boundary_mem[key] = packed
-        if packed is None:
-            if mask_u8 is None:
-                mask_u8 = self.load_uint8(frame, view)[1]
-            b = boundary_mask(mask_u8 >= 128, self.boundary_px)
-            self.boundary_computations += 1
-            packed = np.packbits(b.astype(bool).ravel())
-            self._boundary_mem[key] = packed
-            if disk is not None:
-                tmp = disk.with_name(disk.stem + f".{os.getpid()}.tmp.npy")
-                np.save(tmp, packed)
-                os.replace(tmp, disk)
-        n = self.width * self.height
-        return np.unpackbits(packed, count=n).reshape(self.height, self.width).astype(np.float32)
-
-    # ------------------------------------------------------------------------------------------------ interface
-    def __len__(self) -> int:
-        return len(self.frame_ids) * len(self.views)
-
-    def sample(self, index: int) -> tuple[int, int]:
-        """(frame, view) of item `index`: frames outer, views inner."""
-        if not 0 <= index < len(self):
-            raise IndexError(f"zju_mocap: index {index} out of range for {len(self)} samples")
-        return self.frame_ids[index // len(self.views)], self.views[index % len(self.views)]
-
-    def __getitem__(self, index: int) -> FrameBatch:
-        frame, view = self.sample(index)
-        img_u8, m_u8 = self.load_uint8(frame, view)
-        image = torch.from_numpy(img_u8).float().div_(255.0)  # [H, W, 3]
-        mask = torch.from_numpy(m_u8).float().div_(255.0)  # [H, W]
-        if self.mask_background:
-            image = image * mask[..., None] + self.background * (1.0 - mask[..., None])
-        boundary = torch.from_numpy(self.boundary(frame, view, m_u8))
-        return FrameBatch(
-            image=image[None],
-            mask=mask[None],
-            boundary=boundary[None],
-            cameras=self.cameras.index(view),
-            frame=torch.tensor([frame], dtype=torch.long),
-            pose=self._poses[frame][None].clone(),
-            root=self._roots[frame][None].clone(),
-            betas=self._betas[frame][None].clone(),
-            view=torch.tensor([view], dtype=torch.long),
-        )
-
-    def poses(self) -> torch.Tensor:
-        return self._poses.clone()  # [F, J, 3]
-
-    def roots(self) -> torch.Tensor:
-        """[num_frames_total, 4, 4] root transforms [[R(Rh), Th], [0, 1]]."""
-        return self._roots.clone()
-
-    def betas(self) -> torch.Tensor:
-        """[num_frames_total, S] shape parameters as stored per frame."""
-        return self._betas.clone()
-
-    def vertices(self, frame: int) -> torch.Tensor:
-        """[V, 3] stored posed world vertices of `frame` (for checks and previews)."""
-        return torch.from_numpy(self.seq.vertices(frame))
