@@ -263,12 +263,39 @@ class ZjuWriter:
             raise ValueError(f"frame {frame}: masks must be {images.shape[:3]}, got {masks.shape}")
         if images.dtype != np.uint8:
             raise ValueError(f"frame {frame}: images must be uint8, got {images.dtype}")
+        for v in range(C):
+            write_image(self.root / self.image_path(frame, v), images[v], self.jpeg_quality)
+        self._write_masks_and_body(frame, masks, params, vertices)
+
+    def copy_frame(
+        self,
+        frame: int,
+        image_files: Sequence[str | os.PathLike],  # [C] encoded images, copied byte for byte (no re-encoding)
+        masks: np.ndarray,  # [C, H, W] uint8 / bool, foreground non-zero
+        params: dict | None = None,
+        vertices: np.ndarray | None = None,
+    ) -> None:
+        """`write_frame` for images that are already files with this writer's extension (lossless conversion)."""
+        import shutil
+
+        if len(image_files) != self.num_cameras:
+            raise ValueError(f"frame {frame}: {len(image_files)} image files for {self.num_cameras} cameras")
+        for v, src in enumerate(image_files):
+            if Path(src).suffix.lower() != self.image_ext.lower():
+                raise ValueError(f"frame {frame}: {src} is not a {self.image_ext} file; copy_frame does not re-encode")
+            dst = self.root / self.image_path(frame, v)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            tmp = dst.with_name(dst.name + ".tmp")
+            shutil.copyfile(src, tmp)
+            os.replace(tmp, dst)
+        self._write_masks_and_body(frame, np.asarray(masks), params, vertices)
+
+    def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
+                              vertices: np.ndarray | None) -> None:  # fmt: skip
         import cv2
 
-        for v in range(C):
-            rel = self.image_path(frame, v)
-            write_image(self.root / rel, images[v], self.jpeg_quality)
-            mpath = self.root / self.mask_dir / mask_relpath(rel)
+        for v in range(self.num_cameras):
+            mpath = self.root / self.mask_dir / mask_relpath(self.image_path(frame, v))
             mpath.parent.mkdir(parents=True, exist_ok=True)
             m = (masks[v] != 0).astype(np.uint8) * np.uint8(self.mask_value)
             if not cv2.imwrite(str(mpath), m):
