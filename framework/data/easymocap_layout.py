@@ -205,7 +205,9 @@ def read_people(path: Path) -> list[dict]:
     if isinstance(data, dict):
         data = data.get("annots", [data])
     if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
-        raise EasyMocapError(f"{path}: expected a list of people ({{'id': ..., 'Rh': ...}}), found {type(data).__name__}")
+        raise EasyMocapError(
+            f"{path}: expected a list of people ({{'id': ..., 'Rh': ...}}), found {type(data).__name__}"
+        )
     for d in data:
         if "id" not in d and "personID" in d:
             d["id"] = d["personID"]
@@ -241,7 +243,7 @@ class EasyMocapSequence:
             if unknown:
                 raise EasyMocapError(
                     f"{self.root / INTRI}: data.cameras lists {unknown} but the calibration names {names}; "
-                    f"quote camera names in YAML (\"01\", not 01)"
+                    f'quote camera names in YAML ("01", not 01)'
                 )
             pick = [names.index(c) for c in cameras]
             cams = ZjuCameras(K=cams.K[pick], D=cams.D[pick], R=cams.R[pick], T_mm=cams.T_mm[pick])
@@ -294,7 +296,7 @@ class EasyMocapSequence:
         return [d for d in MASK_DIRS if (self.root / d).is_dir()]
 
     def find_mask_dir(self, mask_dir: str) -> str:
-        """"auto": mask/ when it exists, else mask-schp/; or the folder named (relative to the root)."""
+        """ "auto": mask/ when it exists, else mask-schp/; or the folder named (relative to the root)."""
         if mask_dir != "auto":
             if not (self.root / mask_dir).is_dir():
                 raise EasyMocapFileMissing(
@@ -311,7 +313,7 @@ class EasyMocapSequence:
         return found[0]
 
     def find_params_dir(self, params_dir: str) -> Path:
-        """"auto": the single output*/smpl or output*/*/smpl folder holding NNNNNN.json files."""
+        """ "auto": the single output*/smpl or output*/*/smpl folder holding NNNNNN.json files."""
         if params_dir != "auto":
             path = self.root / params_dir
             if not path.is_dir():
@@ -332,7 +334,7 @@ class EasyMocapSequence:
         return found[0]
 
     def find_vertices_dir(self, vertices_dir: str | None) -> Path | None:
-        """"auto": `vertices/` next to the parameters' `smpl/` folder (mv1p.py --write_vertices), else None."""
+        """ "auto": `vertices/` next to the parameters' `smpl/` folder (mv1p.py --write_vertices), else None."""
         if vertices_dir is None:
             return None
         if vertices_dir != "auto":
@@ -468,4 +470,3 @@ class EasyMocapSequence:
         if v.ndim != 2 or v.shape[1] != 3 or not len(v):
             raise EasyMocapError(f"{path}: expected 'vertices' [V, 3], found shape {v.shape}")
         return v
-
