@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from framework.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
-from framework.build import ConfigError, build_component, node_kwargs
+from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
 from framework.losses import CompositeLoss
 from framework.types import FrameBatch, Gaussians
 
@@ -231,13 +231,6 @@ def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
             + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
             + "`), or start a new run without ckpt_path."
         )
-
-
-def with_fitted_betas(body_node: dict[str, Any] | None, betas: list[float] | None) -> dict[str, Any] | None:
-    """The body node with `betas` filled from the data when the body takes betas and the config leaves them null."""
-    if body_node is None or betas is None or "betas" not in body_node or body_node["betas"] is not None:
-        return body_node
-    return {**body_node, "betas": list(betas)}
 
 
 def _padded_box(points: Tensor, margin: float) -> Tensor:
