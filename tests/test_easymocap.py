@@ -119,9 +119,11 @@ def write_json(path: Path, people: list[dict]) -> None:
 
 
 def write_easymocap(root: Path, cap: Capture, mask_folder: str = "mask-schp", first: int = 100,
-                    output: str = "output-smpl-3d", extra_people: bool = False) -> Path:  # fmt: skip
-    """The capture as EasyMocap leaves it; frame stems start at `first`. Masks are written as SCHP-style colour labels
-    (foreground colours with a zero red channel included); parameters as mv1p.py writes them (2-D lists)."""
+                    output: str = "output-smpl-3d", extra_people: bool = False,
+                    fits_by_image_name: bool = False) -> Path:  # fmt: skip
+    """The capture as EasyMocap leaves it; image names start at `first`, fits are named by the frame's position as
+    mv1p.py names them (or by the image name). Masks are written as SCHP-style colour labels (foreground colours with a
+    zero red channel included); parameters as mv1p.py writes them (2-D lists)."""
     F, C, H, W = cap.masks.shape
     write_calibration(root, cap.names, cap.K_opencv, cap.D, cap.R, cap.T, size=(W, H))
     labels = np.array([[0, 0, 0], [0, 0, 85], [0, 128, 0], [128, 0, 128]], np.uint8)  # BGR; background 0
@@ -135,8 +137,9 @@ def write_easymocap(root: Path, cap: Capture, mask_folder: str = "mask-schp", fi
             cv2.imwrite(str(root / mask_folder / n / f"{stem}.png"), labels[np.clip(part, 0, 3)])
         p = {"id": 0, **{k: np.asarray(v).reshape(1, -1) for k, v in cap.params[f].items()}}
         people = [p] + ([{**p, "id": 3, "Th": p["Th"] + 1.0}] if extra_people else [])
-        write_json(root / output / "smpl" / f"{stem}.json", people)
-        write_json(root / output / "vertices" / f"{stem}.json", [{"id": 0, "vertices": cap.vertices[f]}]
+        fit = stem if fits_by_image_name else f"{f:06d}"
+        write_json(root / output / "smpl" / f"{fit}.json", people)
+        write_json(root / output / "vertices" / f"{fit}.json", [{"id": 0, "vertices": cap.vertices[f]}]
                    + ([{"id": 3, "vertices": cap.vertices[f] + 1.0}] if extra_people else []))  # fmt: skip
     return root
 
@@ -243,6 +246,23 @@ def test_easymocap_own_yaml_text_is_read(tmp_path: Path) -> None:
     assert not cams.D.any()
 
 
+def test_frames_like_easymocap_shortest_camera_and_fit_names(body: ProceduralBody, tmp_path: Path, capsys) -> None:
+    """Frame i is the i-th image of every camera; a camera with extra trailing frames is cut, as EasyMocap's MVBase
+    does; fits are found by position (mv1p.py) or by image name."""
+    cap = make_capture(body, C=2, F=3, size=32, distortion=False, seed=6)
+    root = write_easymocap(tmp_path / "cap", cap, fits_by_image_name=True)
+    extra = root / "images" / "01" / "000103.png"
+    extra.write_bytes((root / "images" / "01" / "000100.png").read_bytes())
+    seq = EasyMocapSequence(root)
+    assert seq.num_frames == 3 and seq.stems == ["000100", "000101", "000102"]
+    assert "using the first 3 frames of every camera" in capsys.readouterr().err
+    assert seq.params_path(2).name == "000102.json"  # fits named by image name
+    ds = EasyMocapDataset(str(root), body="procedural")
+    torch.testing.assert_close(ds.roots()[2, :3, 3], torch.tensor(cap.params[2]["Th"][0], dtype=torch.float32))
+    by_position = write_easymocap(tmp_path / "pos", cap)
+    assert EasyMocapSequence(by_position).params_path(2).name == "000002.json"
+
+
 def test_mask_folder_choice_and_people(body: ProceduralBody, tmp_path: Path) -> None:
     cap = make_capture(body, C=2, F=2, size=32, distortion=False, seed=3)
     root = write_easymocap(tmp_path / "cap", cap, mask_folder="mask", extra_people=True)
@@ -318,9 +338,12 @@ def test_bad_rotation_pair_and_camera_folders(body: ProceduralBody, tmp_path: Pa
     with pytest.raises(EasyMocapError, match=r"R_02 \(Rodrigues\) and Rot_02 describe different rotations"):
         EasyMocapDataset(str(root), body="procedural")
     write_easymocap(root, cap)
-    (root / "images" / "02" / "000101.png").unlink()
-    with pytest.raises(EasyMocapError, match=r"images/02: holds 1 frames but .*images/01 holds 2 .*missing here: "
-                                             r"\['000101'\]"):  # fmt: skip
+    (root / "images" / "02" / "000100.png").rename(root / "images" / "02" / "000099.png")
+    with pytest.raises(EasyMocapError, match=r"images/02: frame 0 is 000099 but in .*images/01 it is 000100; the "
+                                             r"cameras are out of step"):  # fmt: skip
+        EasyMocapDataset(str(root), body="procedural")
+    (root / "images" / "02" / "000099.png").unlink()
+    with pytest.raises(EasyMocapError, match=r"frame 0 is 000101 but .* it is 000100"):
         EasyMocapDataset(str(root), body="procedural")
     import shutil
 
@@ -334,18 +357,18 @@ def test_bad_rotation_pair_and_camera_folders(body: ProceduralBody, tmp_path: Pa
 def test_bad_params_folders_and_pose_lengths(body: ProceduralBody, tmp_path: Path) -> None:
     cap = make_capture(body, C=2, F=2, size=32, distortion=False, seed=5)
     root = write_easymocap(tmp_path / "cap", cap)
-    write_json(root / "output" / "smplx" / "smpl" / "000100.json", [{"id": 0}])
+    write_json(root / "output" / "smplx" / "smpl" / "000000.json", [{"id": 0}])
     with pytest.raises(EasyMocapError, match=r"several parameter folders \['output/smplx/smpl', "
                                              r"'output-smpl-3d/smpl'\]; choose one with data.params_dir="):  # fmt: skip
         EasyMocapDataset(str(root))
-    with pytest.raises(EasyMocapError, match=r"000100\.json: expected keys Rh, Th, poses .* missing \['Rh', 'Th'"):
+    with pytest.raises(EasyMocapError, match=r"000000\.json: expected keys Rh, Th, poses .* missing \['Rh', 'Th'"):
         EasyMocapDataset(str(root), params_dir="output/smplx/smpl")
     ok = EasyMocapDataset(str(root), params_dir="output-smpl-3d/smpl", body="procedural")
     assert ok.body_name == "procedural"
-    write_json(root / "output" / "smplx" / "smpl" / "000100.json",
+    write_json(root / "output" / "smplx" / "smpl" / "000000.json",
                [{"id": 0, "Rh": [[0, 0, 0]], "Th": [[0, 0, 0]], "poses": [[0.0] * 78]}])  # fmt: skip
     with pytest.raises(EasyMocapError, match=r"78 values \(SMPL\+H with hand PCA\), which splatrig does not read"):
         EasyMocapDataset(str(root), params_dir="output/smplx/smpl")
-    (root / "output-smpl-3d" / "smpl" / "000101.json").unlink()
-    with pytest.raises(FileNotFoundError, match=r"params of frame 1 is missing: expected .*000101\.json"):
+    (root / "output-smpl-3d" / "smpl" / "000001.json").unlink()
+    with pytest.raises(FileNotFoundError, match=r"params of frame 1 is missing: expected .*000001\.json"):
         EasyMocapDataset(str(root), params_dir="output-smpl-3d/smpl", body="procedural")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from framework.data.calibration_check import project
 from framework.data.overlay import render_tile
 
 
@@ -39,11 +40,8 @@ def preview(root: str, frame: int, views: list[int] | None, out: str, downscale:
         v = int(b.view[0])
         uv = None
         if verts is not None:
-            w2c = b.cameras.world_to_cam[0].double()
-            p = verts @ w2c[:3, :3].T + w2c[:3, 3]
-            p = p[p[:, 2] > 1e-6]
-            q = p @ b.cameras.K[0].double().T
-            uv = (q[:, :2] / q[:, 2:3]).numpy()
+            uv, z = project(verts.numpy(), b.cameras.K[0].double().numpy(), b.cameras.world_to_cam[0].double().numpy())
+            uv = uv[z > 1e-6]
         label = f"frame {frame} view {v} ({ds.seq.camera_dirs[v]})"
         tile, share = render_tile(b.image[0].numpy(), b.mask[0].numpy(), uv, label, crop)
         tiles.append(tile)

@@ -12,13 +12,17 @@
                     Rot_<name>: 3x3                   the same rotation as a matrix (write_camera writes both);
                                                       used when R_ is missing, checked against R_ when both are there
                     T_<name>: 3x1                     METRES; world-to-camera: x_cam = R x_world + T
-      images/<name>/NNNNNN.jpg     frames (scripts/preprocess/extract_video.py); the stem is the frame number and
-                                   every camera must hold the same stems
+      images/<name>/NNNNNN.jpg     frames (scripts/preprocess/extract_video.py). As EasyMocap's MVBase: frame i is
+                                   the i-th file of each camera's sorted listing, and a camera with more frames than
+                                   the others is cut to the shortest; a frame whose file names differ between cameras
+                                   (a dropped frame, so the cameras fall out of step) is an error
       mask/<name>/NNNNNN.png       foreground masks, or mask-schp/<name>/NNNNNN.png (SCHP part labels as a palette
                                    PNG, background 0): foreground wherever any channel is non-zero, as EasyMocap's
                                    neuralbody reader takes grey > 0. Its reader also accepts NNNNNN_0.png; so do we.
       output*/smpl/NNNNNN.json     apps/demo/mv1p.py --out <out> writes <out>/smpl/ (so --out output/smpl gives
-                                   output/smpl/smpl/); a list of people (or {"annots": [...]}), each
+                                   output/smpl/smpl/), named by the frame's POSITION ({i:06d}, MVBase.basename; the
+                                   image's own name when no 000000.json exists but that name does); a list of people
+                                   (or {"annots": [...]}), each
                                    {"id": 0, "Rh": [[3]], "Th": [[3]], "poses": [[72 | 87 | 165]], "shapes": [[10]],
                                     "expression": [[10]] (SMPL-X)}
       output*/vertices/NNNNNN.json (--write_vertices) [{"id": 0, "vertices": [[x, y, z], ...]}], world metres
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -252,20 +257,22 @@ class EasyMocapSequence:
         self.cameras = cams
         self.image_sizes = sizes
         self.camera_dirs = [f"{IMAGE_DIR}/{n}" for n in names]
-        self.stems, self._image_ext = self._find_frames()
-        self.file_numbers = [int(s) if s.isdigit() else i for i, s in enumerate(self.stems)]
+        self._files = self._find_frames()  # [C][F] image file names
+        self.stems = [os.path.splitext(n)[0] for n in self._files[0]]
         self.mask_dir = self.find_mask_dir(mask_dir)
         self.params_dir = self.find_params_dir(params_dir)
         self.vertices_dir = self.find_vertices_dir(vertices_dir)
+        self.fit_names = self._fit_names()
         self.person_id = person_id
         self.smplx_model_path = smplx_model_path
         self.smplx_gender = smplx_gender
         self._hand_pca: tuple[np.ndarray, np.ndarray] | None = None
 
     # -------------------------------------------------------------------------------------------------- discovery
-    def _find_frames(self) -> tuple[list[str], list[dict[str, str]]]:
+    def _find_frames(self) -> list[list[str]]:
+        """Each camera's sorted image files, cut to the shortest camera (EasyMocap's MVBase does the same)."""
         images = self.root / IMAGE_DIR
-        per_cam: list[dict[str, str]] = []
+        per_cam: list[list[str]] = []
         for name in self.camera_names:
             folder = images / name
             if not folder.is_dir():
@@ -275,22 +282,35 @@ class EasyMocapSequence:
                     f"(found {present or 'no images/ folder'}); extract the videos with EasyMocap's "
                     f"scripts/preprocess/extract_video.py, or list the cameras to use in data.cameras"
                 )
-            files = {p.stem: p.suffix for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS}
+            files = sorted(n for n in os.listdir(folder) if os.path.splitext(n)[1].lower() in IMAGE_EXTS)
             if not files:
                 raise EasyMocapFileMissing(f"{folder} holds no images (expected NNNNNN.jpg)")
             per_cam.append(files)
-        first = set(per_cam[0])
-        for name, files in zip(self.camera_names[1:], per_cam[1:], strict=True):
-            if set(files) != first:
-                only_first = sorted(first - set(files))
-                only_here = sorted(set(files) - first)
+        n = min(len(f) for f in per_cam)
+        stems = [[os.path.splitext(x)[0] for x in files[:n]] for files in per_cam]
+        for name, own in zip(self.camera_names[1:], stems[1:], strict=True):
+            if own != stems[0]:
+                i = next(k for k in range(n) if own[k] != stems[0][k])
                 raise EasyMocapError(
-                    f"{images / name}: holds {len(files)} frames but {images / self.camera_names[0]} holds "
-                    f"{len(first)} (missing here: {only_first[:3]}, extra here: {only_here[:3]}); every camera needs "
-                    f"the same frame numbers, synchronised: re-extract, or delete the frames not all cameras have"
+                    f"{images / name}: frame {i} is {own[i]} but in {images / self.camera_names[0]} it is "
+                    f"{stems[0][i]}; the cameras are out of step (a dropped or extra frame): every camera needs the "
+                    f"same, synchronised frame names"
                 )
-        stems = sorted(first, key=lambda s: (int(s) if s.isdigit() else -1, s))
-        return stems, per_cam
+        if any(len(f) != n for f in per_cam):
+            counts = {name: len(f) for name, f in zip(self.camera_names, per_cam, strict=True) if len(f) != n}
+            print(f"[splatrig] easymocap: using the first {n} frames of every camera, as EasyMocap does ({counts} "
+                  f"hold more)", file=sys.stderr)  # fmt: skip
+        return [files[:n] for files in per_cam]
+
+    def _fit_names(self) -> list[str]:
+        """The JSON name of each frame's fit: its position (EasyMocap's mv1p), or its image name when the fits
+        are named that way (no 000000.json but a file for the first image's name)."""
+        positions = [f"{i:06d}" for i in range(len(self.stems))]
+        if positions == self.stems or (self.params_dir / "000000.json").exists():
+            return positions
+        if (self.params_dir / f"{self.stems[0]}.json").exists():
+            return list(self.stems)
+        return positions
 
     def available_mask_dirs(self) -> list[str]:
         return [d for d in MASK_DIRS if (self.root / d).is_dir()]
@@ -355,8 +375,7 @@ class EasyMocapSequence:
         return len(self.camera_names)
 
     def image_path(self, frame: int, view: int) -> Path:
-        stem = self.stems[frame]
-        return self.root / IMAGE_DIR / self.camera_names[view] / (stem + self._image_ext[view][stem])
+        return self.root / IMAGE_DIR / self.camera_names[view] / self._files[view][frame]
 
     def image(self, frame: int, view: int) -> np.ndarray:
         """uint8 [H, W, 3] RGB, as stored (distorted); checks the size intri.yml states, when it states one."""
@@ -391,11 +410,11 @@ class EasyMocapSequence:
         return self.read_mask(self.mask_path(frame, view))
 
     def params_path(self, frame: int) -> Path:
-        path = self.params_dir / f"{self.stems[frame]}.json"
+        path = self.params_dir / f"{self.fit_names[frame]}.json"
         if not path.exists():
             raise EasyMocapFileMissing(
                 f"params of frame {frame} is missing: expected {path} (EasyMocap writes one JSON per frame; frame "
-                f"{self.stems[frame]} has images but no fit)"
+                f"{frame} ({self.stems[frame]}) has images but no fit)"
             )
         return path
 
@@ -458,7 +477,7 @@ class EasyMocapSequence:
     def vertices_path(self, frame: int) -> Path:
         if self.vertices_dir is None:
             raise EasyMocapFileMissing(f"vertices of frame {frame}: no vertices/ folder next to {self.params_dir}")
-        path = self.vertices_dir / f"{self.stems[frame]}.json"
+        path = self.vertices_dir / f"{self.fit_names[frame]}.json"
         if not path.exists():
             raise EasyMocapFileMissing(f"vertices of frame {frame} are missing: expected {path}")
         return path
