@@ -27,7 +27,7 @@ from torch import Tensor
 from framework.interfaces.rasterizer import ALPHA_MIN, NEAR_PLANE, Rasterizer
 from framework.plugins import load_plugins
 from framework.registry import RASTERIZERS, UnknownComponentError
-from framework.sh import eval_sh, num_sh_bases
+from framework.splat.sh import eval_sh, num_sh_bases
 from framework.types import Cameras, RenderOutput
 
 __all__ = [

@@ -54,9 +54,9 @@ from torch import Tensor
 
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics
 from framework.paths import cache_dir
 from framework.registry import register
+from framework.rig.kinematics import forward_kinematics
 
 ASSET_FORMAT = 1
 PHENOTYPE_DEFAULTS = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.5, "height": 0.5, "proportions": 0.5}

@@ -19,8 +19,8 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics
 from framework.registry import register
+from framework.rig.kinematics import forward_kinematics
 
 # (name, parent, rest joint position)
 JOINTS: list[tuple[str, int, tuple[float, float, float]]] = [

@@ -25,8 +25,8 @@ from torch import Tensor
 
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics, skin_points
 from framework.registry import register
+from framework.rig.kinematics import forward_kinematics, skin_points
 
 SMPL_JOINT_NAMES = [
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",

@@ -19,7 +19,7 @@ def _check_images(name: str, pred: Tensor, target: Tensor) -> None:
 
 def _requires(net: str):
     def check() -> str | None:
-        from framework.lpips import LPIPSWeightsMissing, weights_file
+        from framework.image.lpips import LPIPSWeightsMissing, weights_file
 
         try:
             weights_file(net)
@@ -40,7 +40,7 @@ class _LPIPSMetric(Metric):
 
     @torch.no_grad()
     def __call__(self, pred: Tensor, target: Tensor) -> Tensor:
-        from framework.lpips import LPIPS
+        from framework.image.lpips import LPIPS
 
         _check_images(self.registry_name, pred, target)
         if self._model is None:

@@ -1,12 +1,12 @@
 """`jax`: the rasterizer written in JAX (`jax.jit`, gradients by `jax.vjp`), bridged to torch autograd.
 
 One render is three steps, two of them jitted JAX programs with static shapes:
-1. `framework.jax_raster.project` (JAX): EWA projection, SH colour and the screen box for C cameras x N Gaussians.
+1. `framework.splat.jax_raster.project` (JAX): EWA projection, SH colour and the screen box for C cameras x N Gaussians.
    N is padded to a bucket (4 per octave) so densification recompiles only a handful of times.
 2. Pair list (torch, no gradient): every (Gaussian, pixel) pair in the boxes with alpha >= 1/255, sorted by
    (camera, pixel, depth) with one integer sort. This is a discrete function with no gradient, and torch's CPU
    sort is about 10x faster than JAX's, so it stays in torch. The list is padded to a bucket (4 per octave).
-3. `framework.jax_raster.composite` (JAX): front-to-back compositing over the sorted pairs.
+3. `framework.splat.jax_raster.composite` (JAX): front-to-back compositing over the sorted pairs.
 
 Each JAX step is one `torch.autograd.Function` whose forward runs `jax.vjp` and whose backward calls the saved VJP
 function. The projected centres `means2d` are a real tensor between the two Functions, so `RenderOutput.means2d.grad`
@@ -158,7 +158,7 @@ class _Project(torch.autograd.Function):
     def forward(ctx: Any, means, quats, scales, sh, opacities, viewmats, Ks, cfg: dict):  # type: ignore[override]
         import jax
 
-        from framework.jax_raster import project
+        from framework.splat.jax_raster import project
 
         jdev = cfg["jdev"]
         dev = means.device
@@ -205,7 +205,7 @@ class _Composite(torch.autograd.Function):
     ):
         import jax
 
-        from framework.jax_raster import composite
+        from framework.splat.jax_raster import composite
 
         jdev = cfg["jdev"]
         dev = means2d.device

@@ -32,9 +32,9 @@ from framework.interfaces.rasterizer import (
     TRANSMITTANCE_MIN,
     Rasterizer,
 )
-from framework.projection import project_gaussians
 from framework.registry import register
-from framework.sh import eval_sh
+from framework.splat.projection import project_gaussians
+from framework.splat.sh import eval_sh
 from framework.types import Cameras, RenderOutput
 
 LOG_T_MIN = math.log(TRANSMITTANCE_MIN)

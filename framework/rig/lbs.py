@@ -1,6 +1,6 @@
 """Linear blend skinning of Gaussians: blend bone transforms, split off the rotation, pose every attribute.
 
-Per Gaussian i, P_i = sum_k w_ik P_k = [A_i | t_i]. The polar decomposition A_i = R_i S_i (`framework.polar`) gives
+Per Gaussian i, P_i = sum_k w_ik P_k = [A_i | t_i]. The polar decomposition A_i = R_i S_i (`framework.rig.polar`) gives
 the rotation R_i and a symmetric stretch S_i (identity for a rigid blend; < 1 across a bent joint, the "candy
 wrapper"). Decisions:
 - means' = A_i x + t_i: the exact LBS position, so Gaussians follow the skinned mesh exactly.
@@ -8,7 +8,7 @@ wrapper"). Decisions:
 - scale: with stretch="diag", the Gaussian's scales are multiplied by the diagonal of S_i expressed in the Gaussian's
   own frame, k_l = a_l^T S_i a_l (a_l = its l-th axis). This is the "scale" part of P_i; the off-diagonal (shear)
   part is dropped, as the paper does. stretch="none" keeps the canonical scales (rotation + translation only).
-- SH degrees >= 1 are rotated by R_i (`framework.sh_rotation`), so view-dependent colour turns with the body.
+- SH degrees >= 1 are rotated by R_i (`framework.rig.sh_rotation`), so view-dependent colour turns with the body.
 """
 
 from __future__ import annotations
@@ -17,11 +17,9 @@ import torch
 from torch import Tensor
 
 from framework.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
-from framework.interfaces.deformer import Deformer, DeformOutput
-from framework.polar import polar_decompose
-from framework.sh_rotation import rotate_sh
+from framework.rig.polar import polar_decompose
+from framework.rig.sh_rotation import rotate_sh
 from framework.types import Gaussians
-from framework.weight_field import WeightField
 
 STRETCH_MODES = ("diag", "none")
 _MIN_STRETCH = 1e-4  # floor of the per-axis stretch (a degenerate blend would otherwise give log(0))
@@ -72,60 +70,3 @@ def weight_std(weights6: Tensor) -> Tensor:
     # sqrt has an infinite slope at 0 (rigid regions have var = 0 exactly): mask it so gradients stay finite.
     std = torch.where(var > tiny, torch.sqrt(torch.where(var > tiny, var, torch.ones_like(var))), torch.zeros_like(var))
     return std.sum(-1)
-
-
-class LBSDeformerBase(Deformer):
-    """Shared by the `lbs` and `lbs_residual` deformers (registered in plugins/deformer/).
-
-    Weights: the Gaussians' baked `skin_weights` when present, else the weight field at the canonical means.
-
-    aux["weight_std"] [N] is the L_w term (std of the weights over the six points x +- s_l a_l); it is computed only
-    when gradients are enabled (training) and `weight_std` is on, and is zero for baked weights (nothing to smooth).
-    """
-
-    def __init__(
-        self, grid_resolution: int = 64, stretch: str = "diag", weight_std: bool = True, use_cache: bool = True
-    ) -> None:
-        super().__init__()
-        if stretch not in STRETCH_MODES:
-            raise ValueError(f"deformer.stretch: expected one of {STRETCH_MODES}, got '{stretch}'.")
-        self.grid_resolution, self.stretch = grid_resolution, stretch
-        self.report_weight_std, self.use_cache = weight_std, use_cache
-        self.field: WeightField | None = None
-
-    def bind(self, body: object | None, bounds: Tensor | None) -> None:
-        if body is None or bounds is None:
-            raise ValueError(
-                f"deformer '{self.registry_name}' needs a body model and a canonical box; for static scenes use "
-                "deformer=identity."
-            )
-        self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
-
-    def weights(self, points: Tensor) -> Tensor:
-        """Blend weights [..., J] at canonical points [..., 3]."""
-        if self.field is None:
-            raise RuntimeError(f"deformer '{self.registry_name}': call bind(body, bounds) before using it.")
-        return self.field.sample(points)
-
-    @torch.no_grad()
-    def bake(self, gaussians: Gaussians) -> Tensor:
-        """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference."""
-        return self.weights(gaussians.means).detach().clone()
-
-    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None) -> DeformOutput:
-        if bone_transforms is None:
-            raise ValueError(f"deformer '{self.registry_name}' needs bone_transforms [J, 4, 4]; got None.")
-        aux: dict[str, Tensor] = {}
-        if gaussians.skin_weights is not None:
-            w = gaussians.skin_weights
-            aux["weight_std"] = w.new_zeros(gaussians.num)
-        elif self.report_weight_std and torch.is_grad_enabled():
-            # one lookup for the centre and the six L_w points: the field (and F_dw) cost is per call, then per point
-            points = torch.cat([gaussians.means.unsqueeze(-2), six_points(gaussians)], dim=-2)  # [N, 7, 3]
-            w7 = self.weights(points)  # [N, 7, J]
-            w = w7[:, 0]
-            aux["weight_std"] = weight_std(w7[:, 1:])
-        else:
-            w = self.weights(gaussians.means)  # [N, J]
-        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch)
-        return DeformOutput(posed=posed, weights=w, aux=aux)
