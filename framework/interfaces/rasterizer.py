@@ -24,14 +24,18 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor
 
+# The contract's numbers, defined once beside the splatting math that applies them (re-exported for backends).
+from framework.splat.contract import (  # noqa: F401
+    ALPHA_MAX,
+    ALPHA_MIN,
+    BOX_MARGIN,
+    EPS2D,
+    FAR_PLANE,
+    LOG_T_MIN,
+    NEAR_PLANE,
+    TRANSMITTANCE_MIN,
+)
 from framework.types import Cameras, RenderOutput
-
-NEAR_PLANE = 0.01
-FAR_PLANE = 1e10
-EPS2D = 0.3
-ALPHA_MIN = 1.0 / 255.0
-ALPHA_MAX = 0.999
-TRANSMITTANCE_MIN = 1e-4
 
 
 class Rasterizer(ABC):

@@ -25,7 +25,7 @@ STRETCH_MODES = ("diag", "none")
 _MIN_STRETCH = 1e-4  # floor of the per-axis stretch (a degenerate blend would otherwise give log(0))
 
 
-def blend_transforms(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
+def blended_affine(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
     """weights [N, J], transforms [J, 4, 4] -> A [N, 3, 3], t [N, 3] of P_i = sum_k w_ik P_k."""
     J = transforms.shape[0]
     if weights.shape[-1] != J:
@@ -41,7 +41,7 @@ def apply_lbs(gaussians: Gaussians, weights: Tensor, transforms: Tensor, stretch
     """Pose canonical Gaussians with blend weights [N, J] and rest-to-posed transforms [J, 4, 4]."""
     if stretch not in STRETCH_MODES:
         raise ValueError(f"lbs: stretch must be one of {STRETCH_MODES}, got '{stretch}'.")
-    A, t = blend_transforms(weights, transforms)
+    A, t = blended_affine(weights, transforms)
     R, S = polar_decompose(A)  # [N, 3, 3] each
     means = (A @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
     quats = quat_multiply(rotmat_to_quat(R), gaussians.quats)

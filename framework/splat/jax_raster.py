@@ -20,17 +20,14 @@ This module imports jax at import time; only import it where jax is known to be 
 
 from __future__ import annotations
 
-import math
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 
-from framework.interfaces.rasterizer import ALPHA_MAX, ALPHA_MIN, EPS2D, TRANSMITTANCE_MIN
+from framework.splat.contract import ALPHA_MAX, ALPHA_MIN, EPS2D, LOG_T_MIN
 from framework.splat.projection import EXTEND_MAX, FOV_MARGIN
 from framework.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
-
-LOG_T_MIN = math.log(TRANSMITTANCE_MIN)
 
 
 def quat_to_rotmat(q: jax.Array) -> jax.Array:

@@ -36,13 +36,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from framework.interfaces.rasterizer import ALPHA_MIN, FAR_PLANE, NEAR_PLANE, Rasterizer
+from framework.interfaces.rasterizer import ALPHA_MIN, BOX_MARGIN, FAR_PLANE, NEAR_PLANE, Rasterizer
 from framework.registry import register
 from framework.types import Cameras, RenderOutput
 
 log = logging.getLogger(__name__)
 
-BOX_MARGIN = 1e-3  # px added to the float box so rounding never drops a pixel right on its edge
 MIN_PAIR_BUCKET = 4096  # small scenes (tests, previews) share one compiled shape
 MIN_GAUSSIAN_BUCKET = 256
 

@@ -16,7 +16,6 @@ The per-pair arithmetic lives in four small functions that `compile=True` hands 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -27,18 +26,16 @@ from torch import Tensor
 from framework.interfaces.rasterizer import (
     ALPHA_MAX,
     ALPHA_MIN,
+    BOX_MARGIN,
     FAR_PLANE,
+    LOG_T_MIN,
     NEAR_PLANE,
-    TRANSMITTANCE_MIN,
     Rasterizer,
 )
 from framework.registry import register
 from framework.splat.projection import project_gaussians
 from framework.splat.sh import eval_sh
 from framework.types import Cameras, RenderOutput
-
-LOG_T_MIN = math.log(TRANSMITTANCE_MIN)
-BOX_MARGIN = 1e-3  # px added to the float box so rounding never drops a pixel right on its edge
 
 
 def _to_index(x: Tensor, lo: int, hi: int) -> Tensor:
