@@ -73,7 +73,7 @@ FD64_ATOL = 1e-7
 # a central difference turns into dL / h. Truncation is ~(h / l)^2 relative, l >= 0.02 being the smallest Gaussian
 # scale of the scene. A step of 1e-3 times the tensor's largest magnitude keeps both small, and the check allows 1e-2
 # of the largest finite difference plus dL / h. On torch_ref forced to float32 (tests/test_conformance_float32.py)
-# the error stays under 2% of that over 20 random scenes; what it cannot absorb is a step that moves a pair across
+# the error is at most 2% of that over 20 random scenes; what it cannot absorb is a step that moves a pair across
 # the 1/255 cut (a jump, ~100x the tolerance: 2 of those 20 scenes at this step), and the suite's fixed scene has
 # none for steps from 5e-4 to 2e-3.
 FD32_STEP = 1e-3
