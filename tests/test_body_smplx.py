@@ -162,8 +162,8 @@ def test_joint_names_and_pose_input_choice(body: SMPLXBody):
 
 
 def test_avatar_feeds_the_corrector_only_the_pose_input_joints(body: SMPLXBody):
-    from framework.avatar import Avatar, GaussianParams
-    from framework.gaussian_init import from_body_surface
+    from framework.model.avatar import Avatar, GaussianParams
+    from framework.model.gaussian_init import from_body_surface
     from framework.plugins import load_plugins
     from framework.registry import REGISTRIES
     from framework.types import Cameras, FrameBatch

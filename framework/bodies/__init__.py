@@ -1,3 +1,3 @@
-"""Body-model files shared by the body plugins and the dataset readers: SMPL / SMPL-X file lookup and loading.
-
-May import framework.interfaces, framework.errors, framework.registry and the math modules (geometry, kinematics)."""
+"""Body-model files shared by the body plugins and the dataset readers: `model_files` finds and reads SMPL / SMPL-X
+files (imports core only, so `framework.data` may use it); `smpl_family` builds the SMPL-family BodyModel (imports
+`interfaces`, `rig` and core)."""

@@ -468,7 +468,7 @@ class EasyMocapSequence:
                     f"body.model_path=/path/to/SMPLX_<GENDER>.pkl (or data.body_model_path), or re-run EasyMocap "
                     f"with --write_smpl_full"
                 )
-            from framework.bodies.smpl_family import hand_pca_components, resolve_model_file
+            from framework.bodies.model_files import hand_pca_components, resolve_model_file
 
             model = resolve_model_file(self.smplx_model_path, "smplx", self.smplx_gender)
             self._hand_pca = hand_pca_components(model, HAND_PCA)

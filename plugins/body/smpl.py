@@ -6,13 +6,8 @@ joint names and the choice of F_a's pose-input joints); see its docstring for th
 
 from __future__ import annotations
 
-from framework.bodies.smpl_family import (
-    SMPL_JOINT_NAMES,
-    SmplFamilyBody,
-    expected_filename,
-    resolve_model_file,
-    smplx_requirement,
-)
+from framework.bodies.model_files import expected_filename, resolve_model_file, smplx_requirement
+from framework.bodies.smpl_family import SMPL_JOINT_NAMES, SmplFamilyBody
 from framework.registry import register
 
 __all__ = ["SMPLBody", "SMPL_JOINT_NAMES", "expected_filename", "resolve_model_file"]

@@ -15,7 +15,8 @@ wrists, SMPL's joints without its two hand stubs) enter the appearance corrector
 
 from __future__ import annotations
 
-from framework.bodies.smpl_family import SmplFamilyBody, smplx_requirement
+from framework.bodies.model_files import smplx_requirement
+from framework.bodies.smpl_family import SmplFamilyBody
 from framework.registry import register
 
 NUM_SMPLX_JOINTS = 55
