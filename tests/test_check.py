@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
-from test_easymocap import make_capture, write_calibration, write_easymocap
+from test_easymocap import make_capture, write_calibration, write_easymocap, write_zju
 
 from framework.data.calibration_check import Geometry, score
 from framework.data.check import run
@@ -66,9 +66,24 @@ def test_millimetre_translation_is_named(capture, tmp_path: Path) -> None:
     mm = _variant(root, tmp_path / "mm", cap, T=cap.T * 1000.0)
     code, rep = _check(mm, tmp_path / "out")  # stored vertices without faces: point-splat silhouettes
     assert code == 1 and not rep["ok"]
-    assert any(f.startswith("T is in millimetres where metres are expected for 6 of 6 cameras") and "divide every T "
+    assert any(f.startswith("T is in millimetres where metres are expected (6 of 6 cameras") and "divide every T "
                "by 1000" in f for f in rep["findings"]), rep["findings"]  # fmt: skip
     assert all(r["verdict"] == "T in millimetres" and r["iou"] < 0.1 for r in rep["cameras"])
+
+
+def test_zju_layout_with_metres_is_named(capture, tmp_path: Path) -> None:
+    """The same check on the ZJU-MoCap layout, whose annots.npy stores T in millimetres: metres there are named."""
+    cap, _ = capture
+    root = write_zju(tmp_path / "zju", cap)
+    annots = np.load(root / "annots.npy", allow_pickle=True).item()
+    ok = _check(root, tmp_path / "ok", "data=zju_mocap", "data.protocol=null", "body=procedural")
+    assert ok[0] == 0, ok[1]["findings"]
+    annots["cams"]["T"] = [t / 1000.0 for t in annots["cams"]["T"]]  # metres written where millimetres belong
+    np.save(root / "annots.npy", annots, allow_pickle=True)
+    code, rep = _check(root, tmp_path / "out", "data=zju_mocap", "data.protocol=null", "body=procedural")
+    assert code == 1 and all(r["verdict"] == "T in metres" for r in rep["cameras"])
+    assert any(f.startswith("T is in metres where millimetres are expected (6 of 6 cameras") and "multiply every T "
+               "by 1000" in f for f in rep["findings"]), rep["findings"]  # fmt: skip
 
 
 @pytest.mark.parametrize("order", [[0, 3, 2, 1, 4, 5], [0, 2, 4, 3, 1, 5]], ids=["two swapped", "mis-ordered list"])

@@ -25,6 +25,8 @@ import numpy as np
 NEAR = 1e-3  # metres: points closer to the camera plane are not projected
 UNIT_FACTORS = (1e-3, 1e3)
 SUPERSAMPLE = 4  # silhouettes of triangle meshes are drawn on a 4x finer grid
+TOO_LARGE = "T in the wrong unit: millimetres where metres are expected (1000x too large)"
+TOO_SMALL = "T in the wrong unit: metres where millimetres are expected (1000x too small)"
 
 
 # ----------------------------------------------------------------------------------------------------------- scoring
@@ -157,8 +159,7 @@ def _variants(w2c: np.ndarray) -> Iterable[tuple[str, np.ndarray]]:
     for s in UNIT_FACTORS:
         fixed = w2c.copy()
         fixed[:3, 3] = T * s
-        what = "millimetres where metres are expected (1000x too large)" if s < 1 else "1000x too small"
-        yield f"T in the wrong unit: {what}", fixed
+        yield TOO_LARGE if s < 1 else TOO_SMALL, fixed
     inv = np.eye(4)
     inv[:3, :3], inv[:3, 3] = R.T, -R.T @ T
     yield "R and T are camera-to-world (the inverse of world-to-camera)", inv
@@ -214,15 +215,20 @@ def diagnose(
                 best, best_iou = what, v
         if best is not None:
             fixes[c] = f"{best} (IoU {rows[c].iou:.2f} -> {best_iou:.2f} when corrected)"
-    unit_cams = [c for c, f in fixes.items() if f.startswith("T in the wrong unit: millimetres")]
-    if unit_cams and len(unit_cams) >= max(2, len(bad) // 2):
-        findings.append(
-            f"T is in millimetres where metres are expected for {len(unit_cams)} of {C} cameras (cameras are "
-            f"{distance:.0f} units from the subject; a studio is a few metres across): divide every T by 1000 "
-            f"(EasyMocap's extri.yml stores metres; ZJU-MoCap's annots.npy stores millimetres)"
-        )
-        for c in unit_cams:
-            rows[c].verdict = "T in millimetres"
+    unit_cams: list[int] = []
+    for marker, verdict, how in (
+        (TOO_LARGE, "T in millimetres", "T is in millimetres where metres are expected ({n} of {C} cameras, {d:.0f} "
+         "units from the subject; a studio is a few metres across): divide every T by 1000 (EasyMocap's extri.yml "
+         "stores metres)"),
+        (TOO_SMALL, "T in metres", "T is in metres where millimetres are expected ({n} of {C} cameras, {d:.4f} units "
+         "from the subject): multiply every T by 1000 (ZJU-MoCap's annots.npy stores millimetres)"),
+    ):  # fmt: skip
+        cams = [c for c, f in fixes.items() if f.startswith(marker)]
+        if cams and len(cams) >= max(2, len(bad) // 2):  # the whole rig in the wrong unit: say it once
+            findings.append(how.format(n=len(cams), C=C, d=distance))
+            for c in cams:
+                rows[c].verdict = verdict
+            unit_cams += cams
     # ---- swapped or mis-ordered cameras: whose calibration do this camera's masks fit?
     remaining = [c for c in flagged if c not in fixes]
     fits: dict[int, tuple[int, float]] = {}
@@ -257,7 +263,7 @@ def diagnose(
             )
             rows[c].verdict = f"fits the calibration of {n_d}"
     for c, fix in fixes.items():
-        if c in unit_cams and rows[c].verdict == "T in millimetres":
+        if c in unit_cams:
             continue
         findings.append(f"camera {rig.names[c]}: {fix}")
         rows[c].verdict = fix.split(" (")[0]
