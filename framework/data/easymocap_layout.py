@@ -33,8 +33,9 @@ absolute axis-angle rotations (no mean pose is added: `use_flat_mean`). SMPL: 72
 (22 joints, root slot first) + 6 left-hand + 6 right-hand PCA coefficients + 9 head (jaw, left eye, right eye); the
 hand coefficients multiply the first 6 rows of the model file's `hands_componentsl` / `hands_componentsr` and the
 result is ordered as the SMPL-X skeleton: body 66, jaw, left eye, right eye, left hand 45, right hand 45 = 165
-(SMPLlayer.extend_pose). `--write_smpl_full` writes those 165 directly. The expansion needs the SMPL-X file EasyMocap
-fitted with. SMPL+H (78 values) is not supported. Expression coefficients are read and kept, not used by bodies.
+(SMPLlayer.extend_pose); files that hold the 165 values already are read as they are. The expansion needs the
+SMPL-X file EasyMocap fitted with. SMPL+H (78 values) is not supported. Expression coefficients are read and kept,
+not used by bodies.
 """
 
 from __future__ import annotations
@@ -465,8 +466,7 @@ class EasyMocapSequence:
                 raise EasyMocapError(
                     f"{needed_by}: poses hold {SMPLX_PCA_POSES} values (SMPL-X with {HAND_PCA} hand PCA coefficients "
                     f"per hand); expanding them needs the SMPL-X model file EasyMocap fitted with: pass body=smplx "
-                    f"body.model_path=/path/to/SMPLX_<GENDER>.pkl (or data.body_model_path), or re-run EasyMocap "
-                    f"with --write_smpl_full"
+                    f"body.model_path=/path/to/SMPLX_<GENDER>.pkl (or data.body_model_path)"
                 )
             from framework.bodies.model_files import hand_pca_components, resolve_model_file
 
