@@ -16,12 +16,12 @@ import torch
 from test_zju_format import ring_cameras
 
 from framework.data.easymocap_layout import EasyMocapError, EasyMocapSequence, read_easymocap_cameras
-from framework.data.zju_format import ZjuWriter
+from framework.data.zju.dataset import ZjuMocapDataset
+from framework.data.zju.writer import ZjuWriter
 from framework.errors import SplatrigError
 from framework.geometry import axis_angle_to_rotmat
 from plugins.body.procedural import ProceduralBody
 from plugins.dataset.easymocap import EasyMocapDataset
-from plugins.dataset.zju_mocap import ZjuMocapDataset
 
 NAMES = ["01", "02", "03", "04"]
 

@@ -12,7 +12,7 @@ import numpy as np
 from test_easymocap import write_calibration, write_json
 
 from framework.data.studio import StudioSettings, generate
-from framework.data.zju_format import ZjuSequence
+from framework.data.zju.reader import ZjuSequence
 
 COMMON = [
     "+experiment=paper_full", "body=procedural", "data.body=procedural", "data.downscale=1", "data.test_views=[3]",

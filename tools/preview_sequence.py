@@ -24,7 +24,7 @@ def preview(root: str, frame: int, views: list[int] | None, out: str, downscale:
     """Writes the PNG; returns the in-mask share of projected vertices per view."""
     import cv2
 
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
+    from framework.data.zju.dataset import ZjuMocapDataset
 
     probe = ZjuMocapDataset(root, protocol=None, train_frames=[frame], downscale=downscale, mask_dir=mask_dir,
                             cache_mb=0)  # fmt: skip

@@ -1,7 +1,7 @@
 """`python -m framework.data.convert easymocap ROOT OUT`: an EasyMocap capture in the ZJU-MoCap layout, for tools
 that expect annots.npy / params/ / vertices/ (Neural Body, Animatable NeRF, our `data=zju_mocap`).
 
-What it writes (framework.data.zju_format.ZjuWriter): images copied byte for byte under <OUT>/<camera name>/
+What it writes (framework.data.zju.layout.ZjuWriter): images copied byte for byte under <OUT>/<camera name>/
 (renumbered 000000.. in the order of the selected frames), binary masks under mask/, annots.npy with K and D as
 stored, R, and T in millimetres, params/{i}.npy with the poses as the reader gives them (SMPL-X hand PCA expanded to
 165 values) plus "body", vertices/{i}.npy when EasyMocap wrote vertices, and easymocap_source.json saying where each
@@ -21,7 +21,8 @@ import numpy as np
 
 from framework.data.easymocap_layout import EasyMocapSequence
 from framework.data.sequence_dataset import frame_range
-from framework.data.zju_format import ANNOTS, ZjuWriter
+from framework.data.zju.layout import ANNOTS
+from framework.data.zju.writer import ZjuWriter
 from framework.errors import SplatrigError, reported_as_message
 
 

@@ -47,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from framework.data.zju_format import ZjuCameras, read_image, read_mask_file
+from framework.data.zju.layout import read_image, read_mask_file
+from framework.data.zju.reader import ZjuCameras
 from framework.errors import SplatrigError
 
 INTRI, EXTRI = "intri.yml", "extri.yml"

@@ -35,7 +35,8 @@ import numpy as np
 import torch
 
 from framework.data.boundary import boundary_mask
-from framework.data.zju_format import ZjuCameras, ZjuFormatError
+from framework.data.zju.layout import ZjuFormatError
+from framework.data.zju.reader import ZjuCameras
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces import MultiViewDataset
 from framework.types import Cameras, FrameBatch
