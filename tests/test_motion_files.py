@@ -18,9 +18,9 @@ from framework.data.motion_files import Motion, read_motion_file, resample
 from framework.data.motion_files.bvh import read_bvh
 from framework.data.motion_files.smpl_skeleton import SCHEMATIC_REST, SMPL_JOINT_NAMES, SMPL_PARENTS
 from framework.data.motions import Rig
-from framework.data.zju_format import save_pickled_dict
+from framework.data.zju.layout import save_pickled_dict
 from framework.errors import SplatrigError
-from framework.kinematics import forward_kinematics
+from framework.rig.kinematics import forward_kinematics
 from plugins.body.procedural import JOINTS
 
 # A CMU-style skeleton (Y up, centimetres, T-pose, facing +Z): (name, parent, offset)
@@ -242,7 +242,7 @@ def test_studio_params_folder_reads_back_and_a_wrong_body_is_refused(tmp_path):
     poses = rng.normal(0, 0.3, (3, 17, 3)).astype(np.float32)
     rh, th = rng.normal(0, 1, (3, 3)), rng.normal(0, 1, (3, 3))
     (tmp_path / "params").mkdir()
-    for i in range(3):  # written as the studio writes them (framework.data.zju_format)
+    for i in range(3):  # written as the studio writes them (framework.data.zju.layout)
         save_pickled_dict(tmp_path / "params" / f"{i}.npy", {"poses": poses[i].reshape(1, -1), "Rh": rh[i:i + 1],
                                                               "Th": th[i:i + 1], "shapes": np.zeros((1, 10)),
                                                               "body": "procedural"})  # fmt: skip

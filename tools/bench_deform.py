@@ -33,12 +33,12 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
 
-    from framework.gaussian_init import from_body_surface
     from framework.geometry import axis_angle_to_rotmat
+    from framework.model.gaussian_init import from_body_surface
     from framework.plugins import load_plugins
-    from framework.polar import polar_rotation
     from framework.registry import REGISTRIES
-    from framework.sh_rotation import rotate_sh
+    from framework.rig.polar import polar_rotation
+    from framework.rig.sh_rotation import rotate_sh
     from plugins.body.procedural import ProceduralBody
 
     load_plugins()
@@ -65,7 +65,7 @@ def main() -> None:
     }
     for cname, dname in (("none", "lbs"), ("latent", "lbs"), ("latent", "lbs_residual")):
         corr = REGISTRIES["corrector"].build(cname)
-        corr.bind(body.num_joints * 3)
+        corr.bind(body.num_pose_features)
         deff = REGISTRIES["deformer"].build(dname, grid_resolution=a.grid)
         deff.bind(body, bounds)
 
@@ -73,7 +73,7 @@ def main() -> None:
             params = {k: getattr(g0, k).clone().requires_grad_() for k in ("means", "quats", "log_scales", "sh",
                                                                              "opacity_logits", "latents")}  # fmt: skip
             g = g0.replace(**params)
-            out = deff(corr(g, pose.reshape(-1)), T)
+            out = deff(corr(g, body.pose_features(pose)[0]), T)
             p = out.posed
             loss = p.means.sum() + p.quats.sum() + p.log_scales.sum() + p.sh.sum() + p.opacity_logits.sum()
             loss = loss + out.aux.get("weight_std", torch.zeros(())).sum()

@@ -34,7 +34,7 @@ implementation and the avatar's own render):
      log(max(a_l^T S_i a_l, 1e-4)), a_l = the l-th column of the rotation matrix of q_i; with "none", s'_i = s_i.
   5. SH: coefficients of degree l rotate with R_i (colour seen from direction R_i d after posing equals colour from d
      before); degree 1 is the vector v = (-c_3, -c_1, c_2) per channel turning into R_i v, degrees 2 and 3 by the
-     corresponding Wigner matrices (framework.sh_rotation). Opacity is unchanged.
+     corresponding Wigner matrices (framework.rig.sh_rotation). Opacity is unchanged.
   6. Render as 3DGS does: colour = SH_C0 * dc + ... + 0.5 clamped at 0, opacity = sigmoid(o), scales = exp(s').
 """
 
@@ -160,7 +160,7 @@ def corrected_canonical(package: AnimatablePackage, frame: int) -> Gaussians:
 
 def pose_frame(package: AnimatablePackage, frame: int) -> Gaussians:
     """Steps 1-5 of the module docstring for frame `frame`: world-space Gaussians ready to rasterise."""
-    from framework.lbs import apply_lbs
+    from framework.rig.lbs import apply_lbs
 
     if not 0 <= frame < package.num_frames:
         raise PackageError(f"frame {frame} is outside the package's {package.num_frames} frames.")

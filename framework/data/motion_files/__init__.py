@@ -1,8 +1,8 @@
 """Motion files that drive a trained avatar: our pose files, AMASS-layout SMPL-family files and BVH, retargeted onto
 the avatar's body and resampled to a frame rate.
 
-May import framework core (types, errors, kinematics), framework.data (Rig, the ZJU layout), numpy / scipy / bvhio;
-never lightning/ or the entry points.
+May import framework core (types, errors), framework.rig (kinematics), framework.bodies (SMPL joint names),
+framework.data (Rig, the ZJU layout) and numpy / scipy / bvhio; never lightning/, model/ or the entry points.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ from scipy.spatial.transform import Rotation
 from framework.data.motion_files.clip import Motion
 from framework.data.motions import CHILD, Rig
 from framework.errors import SplatrigError
-from framework.kinematics import kinematic_levels
+from framework.rig.kinematics import kinematic_levels
 
 REQUIRED = ("pelvis", "hip.L", "hip.R", "shoulder.L", "shoulder.R")
 

@@ -1,19 +1,16 @@
 """The SMPL skeleton (shared by SMPL, SMPL-H and SMPL-X for its first 22 joints) without the licensed model file.
 
-Joint names and parents are SMPL's kinematic tree. `SCHEMATIC_REST` is a hand-made T-pose in SMPL's canonical frame
-(metres; Y up, the subject facing +Z, its left on +X), used only for bone directions when retargeting AMASS files
-onto a body that is not SMPL; an SMPL avatar uses its own rest joints instead.
+Joint names (framework.bodies.smpl_family) and parents are SMPL's kinematic tree. `SCHEMATIC_REST` is a hand-made
+T-pose in SMPL's canonical frame (metres; Y up, the subject facing +Z, its left on +X), used only for bone directions
+when retargeting AMASS files onto a body that is not SMPL; an SMPL avatar uses its own rest joints instead.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-SMPL_JOINT_NAMES = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
-    "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder",
-    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hand", "right_hand",
-]  # fmt: skip
+from framework.bodies.smpl_family import SMPL_JOINT_NAMES
+
 SMPL_PARENTS = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21])
 BODY_JOINTS = 22  # joints 0..21 are the same in SMPL, SMPL-H and SMPL-X (then hands / fingers / face)
 

@@ -4,7 +4,7 @@ Accepted (the poses must be for the avatar's own body: same joints, no retargeti
 - `poses.npz` with `poses` [F, J, 3] axis-angle, optional `roots` [F, 4, 4] (world = root @ body) and `fps`;
 - `poses.npy` holding [F, J, 3];
 - a ZJU-MoCap-layout params folder (`params/` or `new_params/` of a sequence, or the sequence folder itself), whose
-  `{i}.npy` files hold dicts with `poses` [1, 3J], `Rh` [1, 3], `Th` [1, 3] (framework.data.zju_format), read in
+  `{i}.npy` files hold dicts with `poses` [1, 3J], `Rh` [1, 3], `Th` [1, 3] (framework.data.zju.layout), read in
   frame-number order; or a single such file (one frame). Root transform = [[R(Rh), Th], [0, 1]].
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from framework.data.motion_files.clip import Motion
-from framework.data.zju_format import PARAMS_DIRS, ZjuFormatError, load_pickled_dict
+from framework.data.zju.layout import PARAMS_DIRS, ZjuFormatError, load_pickled_dict
 from framework.errors import SplatrigError
 
 
