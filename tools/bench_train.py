@@ -14,8 +14,9 @@ Timing: every moment of wall time and process CPU time is charged to exactly one
 (explicit timers around the data loader's `next`, the avatar's pose / corrector / deformer / rasterizer calls, each
 loss term, backward, the optimizer, the densifier, `self.log`, the callbacks); what no section claims is Lightning's
 own loop. Rows are exclusive, so their means add up to the mean step exactly; the table also checks that the sum of
-the rows' medians is within 10 % of the median step. "cores" is process CPU time / wall time (DataLoader worker
-processes included in the step totals). Warm-up steps at the start of each stage are dropped.
+the rows' medians is within 10 % of the median step. Each row shows wall ms / process CPU ms (all threads; CPU ms
+above wall ms means more than one core was busy); "cores" is CPU time / wall time over the step (DataLoader worker
+processes included). Warm-up steps at the start of each stage are dropped.
 
 In the same run, the Gaussians, camera and SH degree of the last stage-2 step are rendered by an eager `torch_ref`
 forward+backward (L1 to the frame's image + mean alpha, as `tools/bench_rasterizers.py`), so the ratio
@@ -444,6 +445,7 @@ def stage_summary(res: VariantResult, stage: int, warmup: int) -> dict[str, Any]
         rows[label] = {
             "median_ms": _med(walls),
             "mean_ms": statistics.fmean(walls),
+            "cpu_median_ms": _med(cpus),
             "cores": sum(cpus) / max(sum(walls), 1e-9),
         }
     step_ms = [s.step_wall * 1e3 for s in steps]
@@ -453,6 +455,7 @@ def stage_summary(res: VariantResult, stage: int, warmup: int) -> dict[str, Any]
         "step_mean_ms": statistics.fmean(step_ms),
         "step_min_ms": min(step_ms),
         "step_max_ms": max(step_ms),
+        "step_cpu_median_ms": _med([s.step_cpu * 1e3 for s in steps]),
         "cores": sum(s.step_cpu for s in steps) / max(sum(s.step_wall for s in steps), 1e-9),
         "rows": rows,
         "sum_of_row_medians_ms": sum(r["median_ms"] for r in rows.values()),
@@ -471,13 +474,13 @@ def breakdown_table(results: list[VariantResult], warmup: int) -> str:
         return "(no timed steps)"
     labels = [r for r in ROWS if any(r in s["rows"] for _, s in cols)]
     labels += sorted({k for _, s in cols for k in s["rows"]} - set(labels))
-    head = "| section | " + " | ".join(f"{n} ms (cores)" for n, _ in cols) + " |"
+    head = "| section | " + " | ".join(f"{n} wall ms / CPU ms" for n, _ in cols) + " |"
     lines = [head, "|---|" + "---|" * len(cols)]
     for label in labels:
         cells = []
         for _, s in cols:
             r = s["rows"].get(label)
-            cells.append("-" if r is None else f"{r['median_ms']:.1f} ({r['cores']:.2f})")
+            cells.append("-" if r is None else f"{r['median_ms']:.1f} / {r['cpu_median_ms']:.1f}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append(
         "| **sum of row medians** | " + " | ".join(f"{s['sum_of_row_medians_ms']:.1f}" for _, s in cols) + " |"
@@ -496,6 +499,7 @@ def breakdown_table(results: list[VariantResult], warmup: int) -> str:
         )
         + " |"
     )
+    lines.append("| step CPU ms, median | " + " | ".join(f"{s['step_cpu_median_ms']:.1f}" for _, s in cols) + " |")
     lines.append("| cores busy (CPU / wall) | " + " | ".join(f"{s['cores']:.2f}" for _, s in cols) + " |")
     return "\n".join(lines)
 
@@ -556,12 +560,14 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.ERROR)
     splits = SharedSplits(warm=not args.cold_data)
+    threads = torch.get_num_threads()  # a variant may change it (threads=1): restored after each
     load0 = os.getloadavg()
     results: dict[str, VariantResult] = {}
     for r in range(args.rounds):
         for name, ovs in specs:
             print(f"[bench_train] round {r + 1}/{args.rounds}: {name} {' '.join(ovs)}", file=sys.stderr, flush=True)
             res = run_variant(name, ovs, args, splits)
+            torch.set_num_threads(threads)
             if name in results:
                 results[name].steps += res.steps
                 results[name].raster_fwd_bwd_ms += res.raster_fwd_bwd_ms
@@ -576,14 +582,14 @@ def main(argv: list[str] | None = None) -> int:
     header = (
         f"{args.experiment}, profile {args.profile}, {args.steps} steps per variant x {args.rounds} round(s) "
         f"(stage switch at {args.steps // 2}, first {args.warmup} steps of each stage dropped); torch "
-        f"{torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY="
+        f"{torch.__version__}, {threads} threads, OMP_WAIT_POLICY="
         f"{os.environ.get('OMP_WAIT_POLICY', '(unset)')}, {os.cpu_count()} CPUs ({platform.processor() or 'cpu'}), "
         f"load average {load0[0]:.1f} -> {load1[0]:.1f}; process peak RSS "
         f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
     )
     print("\n" + header + "\n")
     print(summary_table(ordered, args.warmup))
-    print("\nPer-step breakdown: median ms of each section (cores busy in it), per variant and stage.\n")
+    print("\nPer-step breakdown: median wall ms / median process CPU ms of each section, per variant and stage.\n")
     print(breakdown_table(ordered, args.warmup))
     for res in ordered:
         if res.trace:

@@ -8,8 +8,9 @@ the skin moves with the nearest skin. The grid is computed once per (body, box, 
 (64^3 x 24 joints = 25 MB).
 
 Sampling gathers the 8 corner rows of a channels-last copy of the volume ([R^3, J], each row one node's J weights,
-contiguous; the two x-neighbours as one 2J row) and blends them with three lerps; the backward, written out, returns
-only the 3 coordinate gradients per point instead of autograd's [M, 8, J] intermediates. `F.grid_sample` computes the
+contiguous; the two x-neighbours as one 2J row) and blends them with three lerps; the backward, written out,
+contracts the gradient with the corners once and returns the 3 coordinate gradients per point instead of autograd's
+[M, 8, J] intermediates. `F.grid_sample` computes the
 same values (to float rounding, tested) but reads the channels-first volume with J strided loads per corner: measured
 on the 7 x 8k training points (one CPU core), grid_sample 248 ms forward+backward, this 109 ms, mostly the gather.
 """
@@ -91,20 +92,26 @@ class _Trilinear(torch.autograd.Function):
         fx, fy, fz = frac[:, 0, None, None, None], frac[:, 1, None, None], frac[:, 2, None]
         cx = torch.lerp(c[..., 0, :], c[..., 1, :], fx)  # [M, 2, 2, J]
         cy = torch.lerp(cx[:, :, 0], cx[:, :, 1], fy)  # [M, 2, J]
-        ctx.save_for_backward(c, cx, cy, frac)
+        ctx.save_for_backward(c, frac)
         return torch.lerp(cy[:, 0], cy[:, 1], fz)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor) -> tuple[None, None, Tensor]:  # type: ignore[override]
-        c, cx, cy, frac = ctx.saved_tensors
-        fy, fz = frac[:, 1, None, None], frac[:, 2, None]
-        g_z = ((cy[:, 1] - cy[:, 0]) * grad).sum(-1)  # d out / d fz = cy1 - cy0
-        dy = cx[:, :, 1] - cx[:, :, 0]  # [M, 2, J]
-        g_y = (torch.lerp(dy[:, 0], dy[:, 1], fz) * grad).sum(-1)
-        dx = c[..., 1, :] - c[..., 0, :]  # [M, 2, 2, J]
-        dx = torch.lerp(dx[:, :, 0], dx[:, :, 1], fy)
-        g_x = (torch.lerp(dx[:, 0], dx[:, 1], fz) * grad).sum(-1)
+        c, frac = ctx.saved_tensors
+        # The output is linear in the corners, so contract the gradient with every corner first (one pass over the
+        # [M, 8, J] corners), then differentiate the trilinear weights on [M, 2, 2, 2] values.
+        # (a batched matrix-vector product: measured 3.5x faster than a broadcast multiply and sum on CPU)
+        s = torch.bmm(c.view(c.shape[0], 8, -1), grad.unsqueeze(-1)).view(-1, 2, 2, 2)  # [M, dz, dy, dx]
+        fx, fy, fz = frac[:, 0, None, None], frac[:, 1, None], frac[:, 2]
+        sx = torch.lerp(s[..., 0], s[..., 1], fx)  # [M, 2, 2]
+        sy = torch.lerp(sx[..., 0], sx[..., 1], fy)  # [M, 2]
+        g_z = sy[:, 1] - sy[:, 0]
+        dy = sx[..., 1] - sx[..., 0]  # [M, 2]
+        g_y = torch.lerp(dy[:, 0], dy[:, 1], fz)
+        dx = s[..., 1] - s[..., 0]  # [M, 2, 2]
+        dx = torch.lerp(dx[..., 0], dx[..., 1], fy)  # [M, 2]
+        g_x = torch.lerp(dx[:, 0], dx[:, 1], fz)
         return None, None, torch.stack([g_x, g_y, g_z], dim=-1)
 
 
