@@ -62,6 +62,8 @@ class SplatModule(L.LightningModule):
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
         )  # fmt: skip
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
+        if getattr(deformer, "report_weight_std", False) and not self.loss_fn.uses("weight_std"):
+            deformer.report_weight_std = False  # L_w off: no lookups (and no F_dw) at the six points per Gaussian
         self.densifier = build_component("densifier", cfg["densifier"])
         self.densifier_state: dict[str, Any] = (
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
