@@ -19,9 +19,11 @@ above wall ms means more than one core was busy); "cores" is CPU time / wall tim
 processes included). Warm-up steps at the start of each stage are dropped.
 
 In the same run, the Gaussians, camera and SH degree of the last stage-2 step are rendered by an eager `torch_ref`
-forward+backward (L1 to the frame's image + mean alpha, as `tools/bench_rasterizers.py`), so the ratio
-step / rasterizer reads off one table. Dataset images are decoded once before timing (a long run reads them from its
-in-memory cache after the first epoch); `--cold-data` times first reads instead.
+forward+backward (L1 to a fixed image + mean alpha, as `tools/bench_rasterizers.py`), so the ratio step / rasterizer
+reads off one table; next to it, the paper's two MLPs alone (F_a on the N Gaussians, F_dw on the 7N L_w points),
+forward+backward: GEMM arithmetic every implementation of the step must do. Dataset images are decoded once before
+timing (a long run reads them from its in-memory cache after the first epoch); `--cold-data` times first reads
+instead.
 """
 
 from __future__ import annotations
@@ -180,6 +182,7 @@ class VariantResult:
     resolution: str = ""
     sh_degree_stage2: int = 0
     raster_fwd_bwd_ms: list[float] = field(default_factory=list)
+    mlp_fwd_bwd_ms: list[float] = field(default_factory=list)  # F_a at N and F_dw at 7N points, GEMM floor
     peak_rss_mb: float = 0.0
     setup_s: float = 0.0  # from the start of `run` to the first step (build body, data, module, trainer)
     wall_s: float = 0.0
@@ -250,6 +253,7 @@ class Instrument:
         self.result.sh_degree_stage2 = sh2
         module.sh_degree = lambda step: 0 if step < self.switch_step else sh2
         self.result.num_gaussians = int(module.avatar.gaussians.num)
+        self.module = module
 
     def _sampling_rss(self, fn: Callable) -> Callable:
         @functools.wraps(fn)
@@ -399,7 +403,42 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
     result.peak_rss_mb = inst.rss_peak
     if inst.render_args is not None:
         result.raster_fwd_bwd_ms = raster_reference(inst.render_args, args.raster_repeats)
+        result.mlp_fwd_bwd_ms = mlp_reference(inst.module, inst.render_args, args.raster_repeats)
     return result
+
+
+def _timed_ms(fn: Callable[[], None], repeats: int, device: torch.device) -> list[float]:
+    def once() -> float:
+        t = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        return (time.perf_counter() - t) * 1e3
+
+    for _ in range(2):
+        once()
+    return [once() for _ in range(repeats)]
+
+
+def mlp_reference(module: Any, render_args: tuple, repeats: int) -> list[float]:
+    """The paper's two MLPs alone, forward + backward at the step's sizes: F_a on the N Gaussians and F_dw on the 7N
+    L_w points (stage 2). Their GEMMs are arithmetic every variant must do, a floor under the step time."""
+    corrector, deformer = module.avatar.corrector, module.avatar.deformer
+    mlp, head = getattr(deformer, "mlp", None), getattr(corrector, "head", None)
+    if mlp is None or head is None:
+        return []
+    g = module.avatar.gaussians.gaussians()
+    n, device = g.num, g.means.device
+    pose = torch.zeros(corrector.num_pose_features, device=device)
+    feats = torch.randn(7 * n, mlp[0].in_features, device=device, requires_grad=True)
+    latents = g.latents.detach().clone().requires_grad_()
+
+    def fwd_bwd() -> None:
+        f_a = corrector.residuals(g.replace(latents=latents), pose)
+        (f_a.square().sum() + mlp(feats).square().sum()).backward()
+        module.zero_grad(set_to_none=True)
+
+    return _timed_ms(fwd_bwd, repeats, device)
 
 
 def raster_reference(render_args: tuple, repeats: int) -> list[float]:
@@ -412,19 +451,13 @@ def raster_reference(render_args: tuple, repeats: int) -> list[float]:
     target = target.to(means.device)
     leaves = [t.clone().requires_grad_() for t in (means, quats, scales, opacities, sh)]
 
-    def fwd_bwd() -> float:
-        t = time.perf_counter()
+    def fwd_bwd() -> None:
         out = backend.render(*leaves, cameras, **kwargs)
         ((out.rgb - target).abs().mean() + out.alpha.mean()).backward()
         for p in leaves:
             p.grad = None
-        if means.device.type == "cuda":
-            torch.cuda.synchronize()
-        return (time.perf_counter() - t) * 1e3
 
-    for _ in range(2):
-        fwd_bwd()
-    return [fwd_bwd() for _ in range(repeats)]
+    return _timed_ms(fwd_bwd, repeats, means.device)
 
 
 # --------------------------------------------------------------------------------------------------------- report
@@ -507,8 +540,8 @@ def breakdown_table(results: list[VariantResult], warmup: int) -> str:
 def summary_table(results: list[VariantResult], warmup: int) -> str:
     lines = [
         "| variant | overrides | N | image | stage-2 SH | stage 1 step ms | stage 2 step ms | torch_ref fwd+bwd ms "
-        "| stage 2 / torch_ref | cores (s2) | peak RSS MB | setup s | note |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| stage 2 / torch_ref | F_a + F_dw fwd+bwd ms | cores (s2) | peak RSS MB | setup s | note |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     base = None
     for res in results:
@@ -522,7 +555,8 @@ def summary_table(results: list[VariantResult], warmup: int) -> str:
         lines.append(
             f"| {res.name} | {' '.join(res.overrides) or '-'} | {res.num_gaussians} | {res.resolution} "
             f"| {res.sh_degree_stage2} | {s1['step_median_ms'] if s1 else float('nan'):.1f} | {s2ms:.1f}{rel} "
-            f"| {raster:.1f} | {ratio:.2f} | {s2['cores'] if s2 else float('nan'):.2f} | {res.peak_rss_mb:.0f} "
+            f"| {raster:.1f} | {ratio:.2f} | {_med(res.mlp_fwd_bwd_ms):.1f} "
+            f"| {s2['cores'] if s2 else float('nan'):.2f} | {res.peak_rss_mb:.0f} "
             f"| {res.setup_s:.0f} | {res.note} |"
         )
     return "\n".join(lines)
@@ -571,6 +605,7 @@ def main(argv: list[str] | None = None) -> int:
             if name in results:
                 results[name].steps += res.steps
                 results[name].raster_fwd_bwd_ms += res.raster_fwd_bwd_ms
+                results[name].mlp_fwd_bwd_ms += res.mlp_fwd_bwd_ms
                 results[name].peak_rss_mb = max(results[name].peak_rss_mb, res.peak_rss_mb)
             else:
                 results[name] = res
