@@ -314,11 +314,13 @@ def composite(
     num_pixels = num_cameras * height * width
     with torch.no_grad():
         ent, pix = enumerate_pairs(means2d.detach(), conics.detach(), opacities.detach(), half, cam, width, height)
-        # Stable: pairs were in depth order within each pixel. Sorted as int32 keys where every pixel index fits
-        # (measured 2x faster than int64 keys); indexing stays int64 (int32 index tensors made the gathers slower).
-        keys = pix.int() if num_pixels < 2**31 else pix
-        pix, perm = torch.sort(keys, stable=True)
-        pix = pix.long()
+        # Stable: pairs were in depth order within each pixel. The CPU sort's cost follows the key width, so the keys
+        # are the narrowest integers that hold every pixel index (measured on 707k pairs: int16 8 ms, int32 18 ms,
+        # int64 38 ms); indexing stays int64 (int32 index tensors made the gathers slower).
+        shift = 2**15 if num_pixels <= 2**16 else 0
+        key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
+        keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)
+        pix = keys.long() + shift
         ent = ent.index_select(0, perm)
     return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width, kernels)
 
