@@ -69,7 +69,9 @@ def run(cfg: DictConfig) -> float | None:
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
+    from framework.runtime import reuse_freed_memory
 
+    reuse_freed_memory()
     load_plugins()
     quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)

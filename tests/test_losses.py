@@ -192,6 +192,12 @@ def test_composite_weights_and_values():
     assert total.item() == pytest.approx(expected.item(), rel=1e-6)
 
 
+def test_uses_names_the_built_terms():
+    comp = CompositeLoss({"l1": {"weight": 0.8}, "weight_std": {"weight": 0.0}, "fg": {"name": "l1", "weight": 1.0}})
+    assert comp.uses("l1") and not comp.uses("weight_std") and not comp.uses("fg")
+    assert CompositeLoss({"smooth": {"name": "weight_std", "weight": 0.2}}).uses("weight_std")
+
+
 def test_zero_weight_terms_are_not_built(monkeypatch):
     built = []
     original = LOSSES.build

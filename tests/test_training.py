@@ -63,6 +63,12 @@ def test_static_fit_trains_and_reports(tmp_path: Path):
     assert ckpt["global_step"] == 40
     events = list((run / "tb").rglob("events.out.tfevents.*"))
     assert events, "no TensorBoard event file written"
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    # Scalars are logged only on the steps Lightning writes (log_every = 25 by default): step 24 of 0..39.
+    scalars = EventAccumulator(str(events[0].parent)).Reload()
+    for tag in ("loss/total", "loss/l1", "train/psnr", "train/ms_per_iteration", "lr/means", "train/stage"):
+        assert [e.step for e in scalars.Scalars(tag)] == [24], tag
 
 
 def test_interrupted_run_resumes_with_step_count_and_optimizer_state(tmp_path: Path):

@@ -83,7 +83,8 @@ class StageSwitch(Callback):
                 changed = True
         if changed and stage2 and trainer.global_step > 0:
             tqdm.write(f"[splatrig] step {trainer.global_step}: stage 2, corrector and blend-weight residual on")
-        pl_module.log("train/stage", 2.0 if stage2 else 1.0, on_step=True, batch_size=1)
+        if getattr(pl_module, "logs_this_step", lambda: True)():
+            pl_module.log("train/stage", 2.0 if stage2 else 1.0, on_step=True, batch_size=1)
 
     def on_train_start(self, trainer, pl_module) -> None:
         stage2 = trainer.global_step >= self.stage1_steps

@@ -62,11 +62,15 @@ class SplatModule(L.LightningModule):
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
         )  # fmt: skip
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
+        if getattr(deformer, "report_weight_std", False) and not self.loss_fn.uses("weight_std"):
+            deformer.report_weight_std = False  # L_w off: no lookups (and no F_dw) at the six points per Gaussian
         self.densifier = build_component("densifier", cfg["densifier"])
         self.densifier_state: dict[str, Any] = (
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
         )
         self._step_started = time.perf_counter()
+        self._steps_since_log = 0
+        self._last_train_psnr: Tensor | None = None
         self._loaded_steps = 0
 
     # ----------------------------------------------------------------------------------------------- construction
@@ -99,7 +103,11 @@ class SplatModule(L.LightningModule):
             groups.append({"params": [self.avatar.pose_refiner.pose_residual], "lr": float(lr["pose"]), "name": "pose"})
             groups.append({"params": [self.avatar.pose_refiner.joint_residual], "lr": float(lr["joints"]),
                            "name": "joints"})  # fmt: skip
-        return torch.optim.Adam(groups, eps=1e-15)
+        # The fused kernel updates every tensor in one pass per group (the same Adam; results agree to float rounding):
+        # 3x less time than the per-parameter loop on CPU for this model. Unsupported dtypes/devices keep the loop.
+        params_all = [p for g in groups for p in g["params"]]
+        fused = all(p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) for p in params_all)
+        return torch.optim.Adam(groups, eps=1e-15, fused=fused or None)
 
     # ------------------------------------------------------------------------------------------------- schedules
     def sh_degree(self, step: int) -> int:
@@ -131,6 +139,7 @@ class SplatModule(L.LightningModule):
         opt = self.optimizers()
         optimizer = opt.optimizer
         step = self.global_step
+        log_now = self.logs_this_step()  # before opt.step(), which advances global_step
         self._set_learning_rates(optimizer, step)
         out = self.render_batch(batch, step)
         total, terms = self.loss_fn(out.render, batch, out.aux)
@@ -152,21 +161,38 @@ class SplatModule(L.LightningModule):
             with torch.no_grad():
                 self.densifier.step_post_backward(params, self._densifier_optimizers(optimizer),
                                                   self.densifier_state, step, info)  # fmt: skip
-        now = time.perf_counter()
-        ms = (now - self._step_started) * 1000
-        self._step_started = now
+        self._steps_since_log += 1
         with torch.no_grad():
-            train_psnr = psnr(out.render.rgb.detach(), batch.image).mean()
-        self.log_dict({f"loss/{k}": v.detach() for k, v in terms.items()}, on_step=True, batch_size=1)
-        self.log("loss/total", total.detach(), on_step=True, prog_bar=False, batch_size=1)
-        self.log("train/psnr", train_psnr, on_step=True, batch_size=1)
-        self.log("train/num_gaussians", float(self.avatar.gaussians.num), on_step=True, batch_size=1)
-        self.log("train/ms_per_iteration", ms, on_step=True, batch_size=1)
-        self.log("train/sh_degree", float(self.sh_degree(step)), on_step=True, batch_size=1)
-        for group in optimizer.param_groups:
-            self.log(f"lr/{group['name']}", group["lr"], on_step=True, batch_size=1)
-        self.last_train_psnr = float(train_psnr)
+            self._last_train_psnr = psnr(out.render.rgb.detach(), batch.image).mean()
+        if log_now:
+            now = time.perf_counter()
+            ms = (now - self._step_started) * 1000 / self._steps_since_log  # mean over the steps since the last log
+            self._step_started, self._steps_since_log = now, 0
+            self.log_dict({f"loss/{k}": v for k, v in terms.items()}, on_step=True, batch_size=1)
+            self.log("loss/total", total.detach(), on_step=True, prog_bar=False, batch_size=1)
+            self.log("train/psnr", self._last_train_psnr, on_step=True, batch_size=1)
+            self.log("train/num_gaussians", float(self.avatar.gaussians.num), on_step=True, batch_size=1)
+            self.log("train/ms_per_iteration", ms, on_step=True, batch_size=1)
+            self.log("train/sh_degree", float(self.sh_degree(step)), on_step=True, batch_size=1)
+            for group in optimizer.param_groups:
+                self.log(f"lr/{group['name']}", group["lr"], on_step=True, batch_size=1)
         return total.detach()
+
+    def logs_this_step(self) -> bool:
+        """Whether Lightning writes this training step's metrics to the logger (every `log_every_n_steps`, and on the
+        last step). Scalars logged on other steps would be overwritten unseen, and ~20 `self.log` calls cost tens of
+        ms per step on a CPU, so training logs only on these steps."""
+        trainer = self._trainer
+        if trainer is None or trainer.fast_dev_run:
+            return True
+        every = int(trainer.log_every_n_steps)
+        # Lightning's own test: (batches stepped + 1) % every; one optimizer step per batch, so global_step counts them
+        return every > 0 and ((self.global_step + 1) % every == 0 or bool(trainer.should_stop))
+
+    @property
+    def last_train_psnr(self) -> float:
+        """PSNR of the last training render (read by the progress bar when it refreshes; no host sync per step)."""
+        return 0.0 if self._last_train_psnr is None else float(self._last_train_psnr)
 
     def _densifier_optimizers(self, optimizer: torch.optim.Optimizer) -> dict[str, torch.optim.Optimizer]:
         """One optimizer serves every per-Gaussian key; the surgery finds each key's group by its name."""

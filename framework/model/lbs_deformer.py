@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
-from framework.rig.lbs import STRETCH_MODES, apply_lbs, six_points, weight_std
+from framework.rig.lbs import POLAR_DTYPES, STRETCH_MODES, apply_lbs, six_points, weight_std
 from framework.rig.weight_field import WeightField
 from framework.types import Gaussians
 
@@ -23,11 +23,19 @@ class LBSDeformerBase(Deformer):
     """
 
     def __init__(
-        self, grid_resolution: int = 64, stretch: str = "diag", weight_std: bool = True, use_cache: bool = True
+        self,
+        grid_resolution: int = 64,
+        stretch: str = "diag",
+        weight_std: bool = True,
+        use_cache: bool = True,
+        polar_dtype: str = "float32",
     ) -> None:
         super().__init__()
         if stretch not in STRETCH_MODES:
             raise ValueError(f"deformer.stretch: expected one of {STRETCH_MODES}, got '{stretch}'.")
+        if polar_dtype not in POLAR_DTYPES:
+            raise ValueError(f"deformer.polar_dtype: expected one of {sorted(POLAR_DTYPES)}, got '{polar_dtype}'.")
+        self.polar_dtype = POLAR_DTYPES[polar_dtype]
         self.grid_resolution, self.stretch = grid_resolution, stretch
         self.report_weight_std, self.use_cache = weight_std, use_cache
         self.field: WeightField | None = None
@@ -66,5 +74,5 @@ class LBSDeformerBase(Deformer):
             aux["weight_std"] = weight_std(w7[:, 1:])
         else:
             w = self.weights(gaussians.means)  # [N, J]
-        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch)
+        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch, self.polar_dtype)
         return DeformOutput(posed=posed, weights=w, aux=aux)

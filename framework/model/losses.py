@@ -66,5 +66,10 @@ class CompositeLoss(nn.Module):
             values[key] = value.detach()
         return total, values
 
+    def uses(self, name: str) -> bool:
+        """Whether a term of registered loss `name` is built (weight != 0), e.g. so that the deformer can skip the
+        six-point weight lookups behind `weight_std` when nothing reads them."""
+        return any(getattr(term, "registry_name", None) == name for term in self.terms.values())
+
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={w:g}" for k, w in self.weights.items()) or "(no terms)"
