@@ -3,7 +3,9 @@
 Per Gaussian i, P_i = sum_k w_ik P_k = [A_i | t_i]. The polar decomposition A_i = R_i S_i (`framework.polar`) gives
 the rotation R_i and a symmetric stretch S_i (identity for a rigid blend; < 1 across a bent joint, the "candy
 wrapper"). Decisions:
-- means' = A_i x + t_i: the exact LBS position, so Gaussians follow the skinned mesh exactly.
+- means' = A_i x + t_i (centres="blended", ours): the exact LBS position, so Gaussians follow the skinned mesh
+  exactly. centres="rigid" is the paper's eq. 4, R_i x + t_i: the centre moves by the rotation part only, so across a
+  bent joint it does not shrink towards the bone with the mesh.
 - quats' = quat(R_i) * q: the Gaussian's axes rotate with R_i.
 - scale: with stretch="diag", the Gaussian's scales are multiplied by the diagonal of S_i expressed in the Gaussian's
   own frame, k_l = a_l^T S_i a_l (a_l = its l-th axis). This is the "scale" part of P_i; the off-diagonal (shear)
@@ -24,6 +26,7 @@ from framework.types import Gaussians
 from framework.weight_field import WeightField
 
 STRETCH_MODES = ("diag", "none")
+CENTRE_MODES = ("blended", "rigid")
 _MIN_STRETCH = 1e-4  # floor of the per-axis stretch (a degenerate blend would otherwise give log(0))
 
 
@@ -39,13 +42,17 @@ def blend_transforms(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tenso
     return P[:, :, :3], P[:, :, 3]
 
 
-def apply_lbs(gaussians: Gaussians, weights: Tensor, transforms: Tensor, stretch: str = "diag") -> Gaussians:
+def apply_lbs(gaussians: Gaussians, weights: Tensor, transforms: Tensor, stretch: str = "diag",
+              centres: str = "blended") -> Gaussians:  # fmt: skip
     """Pose canonical Gaussians with blend weights [N, J] and rest-to-posed transforms [J, 4, 4]."""
     if stretch not in STRETCH_MODES:
         raise ValueError(f"lbs: stretch must be one of {STRETCH_MODES}, got '{stretch}'.")
+    if centres not in CENTRE_MODES:
+        raise ValueError(f"lbs: centres must be one of {CENTRE_MODES}, got '{centres}'.")
     A, t = blend_transforms(weights, transforms)
     R, S = polar_decompose(A)  # [N, 3, 3] each
-    means = (A @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
+    moves = A if centres == "blended" else R
+    means = (moves @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
     quats = quat_multiply(rotmat_to_quat(R), gaussians.quats)
     log_scales = gaussians.log_scales
     if stretch == "diag":
@@ -80,17 +87,26 @@ class LBSDeformerBase(Deformer):
     Weights: the Gaussians' baked `skin_weights` when present, else the weight field at the canonical means.
 
     aux["weight_std"] [N] is the L_w term (std of the weights over the six points x +- s_l a_l); it is computed only
-    when gradients are enabled (training) and `weight_std` is on, and is zero for baked weights (nothing to smooth).
+    when gradients are enabled (training), `weight_std` is on and a loss term reads it (`use_aux`), and is zero for
+    baked weights (nothing to smooth).
     """
 
     def __init__(
-        self, grid_resolution: int = 64, stretch: str = "diag", weight_std: bool = True, use_cache: bool = True
+        self,
+        grid_resolution: int = 64,
+        stretch: str = "diag",
+        weight_std: bool = True,
+        use_cache: bool = True,
+        centres: str = "blended",
     ) -> None:
         super().__init__()
         if stretch not in STRETCH_MODES:
             raise ValueError(f"deformer.stretch: expected one of {STRETCH_MODES}, got '{stretch}'.")
-        self.grid_resolution, self.stretch = grid_resolution, stretch
-        self.report_weight_std, self.use_cache = weight_std, use_cache
+        if centres not in CENTRE_MODES:
+            raise ValueError(f"deformer.centres: expected one of {CENTRE_MODES}, got '{centres}'.")
+        self.grid_resolution, self.stretch, self.centres = grid_resolution, stretch, centres
+        self.weight_std_enabled, self.use_cache = weight_std, use_cache
+        self.report_weight_std = weight_std
         self.field: WeightField | None = None
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
@@ -100,6 +116,9 @@ class LBSDeformerBase(Deformer):
                 "deformer=identity."
             )
         self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
+
+    def use_aux(self, keys: frozenset[str]) -> None:
+        self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
 
     def weights(self, points: Tensor) -> Tensor:
         """Blend weights [..., J] at canonical points [..., 3]."""
@@ -127,5 +146,5 @@ class LBSDeformerBase(Deformer):
             aux["weight_std"] = weight_std(w7[:, 1:])
         else:
             w = self.weights(gaussians.means)  # [N, J]
-        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch)
+        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch, self.centres)
         return DeformOutput(posed=posed, weights=w, aux=aux)

@@ -104,16 +104,10 @@ def run(cfg: DictConfig) -> float | None:
 
     logger = TensorBoardLogger(save_dir=str(out_dir), name="tb", version="") if cfg.logger.name else None
     ckpt_dir = out_dir / "checkpoints"
+    # No "best" checkpoint: validation runs on a test split (novel views), and a model chosen on test data would
+    # report optimistic test numbers. We keep the model training ends with: last.ckpt (also saved periodically, to
+    # resume) and final.ckpt (blend weights baked).
     callbacks = [
-        ModelCheckpoint(
-            dirpath=ckpt_dir,
-            filename="best",
-            monitor="val/psnr",
-            mode="max",
-            save_last=True,
-            save_top_k=1,
-            auto_insert_metric_name=False,
-        ),  # fmt: skip
         ModelCheckpoint(
             dirpath=ckpt_dir,
             filename="last",
@@ -147,8 +141,9 @@ def run(cfg: DictConfig) -> float | None:
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
-                            f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
+                            f"checkpoints/last.ckpt.")  # fmt: skip
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
     if module.bake_weights():
         trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)

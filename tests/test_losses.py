@@ -78,8 +78,11 @@ def test_alpha_hand(norm):
     render, batch = make(seed=3)
     loss = LOSSES.build("alpha", norm=norm)(render, batch, {})
     a, m, mb = np64(render.alpha)[..., 0], np64(batch.mask), np64(batch.boundary)
-    err = np.abs(a - m) if norm == "l1" else (a - m) ** 2
-    assert loss.item() == pytest.approx((mb * err).mean(), rel=1e-5)
+    if norm == "l1":
+        expected = (mb * np.abs(a - m)).mean()
+    else:  # per image ||M_b (a - m)||_2 / sqrt(H W), then the batch mean
+        expected = np.mean([np.linalg.norm(mb[i] * (a[i] - m[i])) / np.sqrt(a[i].size) for i in range(len(a))])
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
     with pytest.raises(ValueError, match="norm"):
         LOSSES.build("alpha", norm="huber")
 
@@ -231,23 +234,30 @@ def test_loss_presets_compose_and_build():
     paper = _compose_loss("paper")
     assert paper["terms"] == {
         "l1": {"weight": 0.8, "boundary": True},
-        "alpha": {"weight": 10.0},
+        "alpha": {"weight": 10.0, "norm": "l1"},
         "weight_std": {"weight": 0.2},
         "dssim": {"weight": 0.2},
         "lpips": {"weight": 0.0},
     }
     expected_change = {
-        "no_boundary_mask": ("l1", "boundary", False),
-        "foreground_only": ("l1", "foreground_only", True),
-        "no_alpha": ("alpha", "weight", 0.0),
-        "no_weight_std": ("weight_std", "weight", 0.0),
-        "paper_lpips": ("lpips", "weight", 0.2),
+        "no_boundary_mask": {("l1", "boundary"): False},
+        # the paper's "only foreground" row: image loss on the mask only, and no alpha loss
+        "foreground_only": {
+            ("l1", "foreground_only"): True,
+            ("alpha", "weight"): 0.0,
+            ("dssim", "foreground_only"): True,
+        },
+        "no_alpha": {("alpha", "weight"): 0.0},
+        "no_weight_std": {("weight_std", "weight"): 0.0},
+        "paper_lpips": {("lpips", "weight"): 0.2},
     }
-    for preset, (term, key, value) in expected_change.items():
+    for preset, changes in expected_change.items():
         cfg = _compose_loss(preset)
-        assert cfg["terms"][term][key] == value
-        others = {k: v for k, v in cfg["terms"].items() if k != term}
-        assert others == {k: v for k, v in paper["terms"].items() if k != term}, preset  # exactly one row changes
+        for (term, key), value in changes.items():
+            assert cfg["terms"][term][key] == value
+        touched = {term for term, _ in changes}
+        others = {k: v for k, v in cfg["terms"].items() if k not in touched}
+        assert others == {k: v for k, v in paper["terms"].items() if k not in touched}, preset  # only its row changes
     static = _compose_loss("static")
     assert static["terms"] == {"l1": {"weight": 0.8, "boundary": False}, "dssim": {"weight": 0.2}}
     lpips_ok = LOSSES.entry("lpips").unavailable_reason() is None

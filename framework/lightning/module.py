@@ -62,6 +62,7 @@ class SplatModule(L.LightningModule):
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
         )  # fmt: skip
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
+        deformer.use_aux(self.loss_fn.aux_keys)  # e.g. no L_w term: the deformer skips the six-point weight lookups
         self.densifier = build_component("densifier", cfg["densifier"])
         self.densifier_state: dict[str, Any] = (
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
@@ -167,6 +168,12 @@ class SplatModule(L.LightningModule):
             self.log(f"lr/{group['name']}", group["lr"], on_step=True, batch_size=1)
         self.last_train_psnr = float(train_psnr)
         return total.detach()
+
+    def begin_stage2(self, step: int) -> None:
+        """Stage 2 starts at `step`: the densifier's schedule (opacity resets) counts from here on."""
+        restart = getattr(self.densifier, "restart_schedule", None)
+        if restart is not None:
+            restart(self.densifier_state, step)
 
     def _densifier_optimizers(self, optimizer: torch.optim.Optimizer) -> dict[str, torch.optim.Optimizer]:
         """One optimizer serves every per-Gaussian key; the surgery finds each key's group by its name."""
