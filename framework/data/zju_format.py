@@ -260,16 +260,9 @@ class ZjuWriter:
             raise ValueError(f"frame {frame}: masks must be {images.shape[:3]}, got {masks.shape}")
         if images.dtype != np.uint8:
             raise ValueError(f"frame {frame}: images must be uint8, got {images.dtype}")
-        import cv2
-
         for v in range(C):
-            rel = self.image_path(frame, v)
-            write_image(self.root / rel, images[v], self.jpeg_quality)
-            mpath = self.root / self.mask_dir / mask_relpath(rel)
-            mpath.parent.mkdir(parents=True, exist_ok=True)
-            m = (masks[v] != 0).astype(np.uint8) * np.uint8(self.mask_value)
-            if not cv2.imwrite(str(mpath), m):
-                raise OSError(f"could not write mask {mpath}")
+            write_image(self.root / self.image_path(frame, v), images[v], self.jpeg_quality)
+        self.write_masks(frame, masks, self.mask_dir)
         n = self.file_number(frame)
         if params is not None:
             save_pickled_dict(self.root / "params" / f"{n}.npy", normalize_params(params, f"frame {frame}"))
@@ -280,6 +273,20 @@ class ZjuWriter:
             (self.root / "vertices").mkdir(parents=True, exist_ok=True)
             np.save(self.root / "vertices" / f"{n}.npy", verts)
         self._written.add(frame)
+
+    def write_masks(self, frame: int, masks: np.ndarray, mask_dir: str) -> None:
+        """Masks [C, H, W] (foreground non-zero) of one frame into `mask_dir` (e.g. a second, parser-made set in
+        mask_cihp/ next to mask/, as ZJU-MoCap ships both)."""
+        import cv2
+
+        if mask_dir not in MASK_DIRS:
+            raise ValueError(f"mask_dir must be one of {MASK_DIRS}, got '{mask_dir}'")
+        for v in range(self.num_cameras):
+            mpath = self.root / mask_dir / mask_relpath(self.image_path(frame, v))
+            mpath.parent.mkdir(parents=True, exist_ok=True)
+            m = (np.asarray(masks[v]) != 0).astype(np.uint8) * np.uint8(self.mask_value)
+            if not cv2.imwrite(str(mpath), m):
+                raise OSError(f"could not write mask {mpath}")
 
     def finish(self, num_frames: int | None = None) -> Path:
         """Write annots.npy for frames 0..num_frames-1 (default: 0..max written); checks every image exists."""
