@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -37,6 +38,11 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
 
     def poses(self) -> Tensor | None:
         """[num_frames_total, J, 3] stored poses of the whole sequence (None for static scenes)."""
+        return None
+
+    def body_box(self, frame: int) -> np.ndarray | None:
+        """[2, 3] world box of `frame`'s posed body for the body-box metrics (`framework.evaluation.body_box`: the
+        stored body vertices' box grown by 5 cm), or None when the dataset has no body vertices."""
         return None
 
     def initial_points(self) -> Tensor | None:

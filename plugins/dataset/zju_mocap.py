@@ -488,6 +488,13 @@ class ZjuMocapDataset(MultiViewDataset):
         """[num_frames_total, S] shape parameters as stored per frame."""
         return self._betas.clone()
 
+    def body_box(self, frame: int) -> np.ndarray | None:
+        from framework.evaluation.body_box import frame_box
+
+        if self.seq.vertices_dir is None:
+            return None
+        return frame_box(self.seq.vertices(frame))
+
     def vertices(self, frame: int) -> torch.Tensor:
         """[V, 3] stored posed world vertices of `frame` (for checks and previews)."""
         return torch.from_numpy(self.seq.vertices(frame))
