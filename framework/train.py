@@ -145,9 +145,9 @@ def run(cfg: DictConfig) -> float | None:
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
                             f"checkpoints/last.ckpt.")  # fmt: skip
-    fit_started = time.perf_counter()
+    fit_started, fit_cpu = time.perf_counter(), time.process_time()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
-    train_seconds = time.perf_counter() - fit_started
+    train_seconds, train_cpu_seconds = time.perf_counter() - fit_started, time.process_time() - fit_cpu
     trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
     if module.bake_weights():
@@ -162,6 +162,7 @@ def run(cfg: DictConfig) -> float | None:
         out_dir, experiment=str(cfg.task_name), config_name=config_name, overrides=overrides,
         seed=int(cfg.seed), profile=str(cfg.profile.name), data=str(cfg.data.name), steps=int(trainer.global_step),
         max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
+        train_cpu_seconds=round(train_cpu_seconds, 2),
         run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
         metrics=metrics_from_summary(result),
     )  # fmt: skip

@@ -83,6 +83,26 @@ def test_simple_3dgs_lbs_drops_exactly_the_corrector_and_joint_optimisation():
     assert "plain_3dgs_lbs" not in sweep.split(",")
 
 
+@pytest.mark.parametrize(
+    ("experiment", "path", "value"),
+    [
+        ("paper_full_alpha_l2", ("loss", "terms", "alpha", "norm"), "l2"),
+        ("paper_full_additive_weights", ("deformer", "residual"), "additive"),
+        ("paper_full_rigid_centres", ("deformer", "centres"), "rigid"),
+    ],
+)
+def test_each_paper_form_experiment_changes_one_key(experiment: str, path: tuple[str, ...], value: str):
+    """paper_full uses our forms; each paper-form experiment switches exactly one of them to the paper's."""
+    full, cfg = composed("+experiment=paper_full"), composed(f"+experiment={experiment}")
+    assert changed_groups(experiment) == {path[0]}
+    ours, theirs = full, cfg
+    for key in path:
+        ours, theirs = ours[key], theirs[key]
+    assert theirs == value and ours != value
+    cfg[path[0]] = full[path[0]]
+    assert {k: v for k, v in cfg.items() if k != "task_name"} == {k: v for k, v in full.items() if k != "task_name"}
+
+
 def _reset_steps(profile: str) -> tuple[list[int], dict]:
     """Opacity resets over a whole run of paper_full at `profile`, with the real stage-switch callback driving the
     densifier's schedule (as the trainer does, one call per training batch)."""
@@ -167,3 +187,12 @@ def test_weight_std_is_not_computed_when_its_loss_weight_is_zero(tmp_path, monke
         n = module.avatar.gaussians.num
         assert ("weight_std" in out.aux) is wanted, experiment
         assert sampled == ([(n, 7)] if wanted else [(n,)]), experiment
+
+
+def test_paper_forms_sweep_lists_paper_full_and_each_form():
+    from pathlib import Path
+
+    sweep = OmegaConf.load(Path(__file__).resolve().parents[1] / "sweeps" / "paper_forms.yaml").hydra.sweeper.params
+    assert str(sweep["+experiment"]).split(",") == ["paper_full", "paper_full_alpha_l2", "paper_full_additive_weights",
+                                                    "paper_full_rigid_centres"]  # fmt: skip
+    assert str(sweep.seed) == "0,1,2" and sweep.data == "synthetic_studio_realistic"

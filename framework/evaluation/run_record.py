@@ -11,6 +11,7 @@ parts) and reports of several kinds read the same data. Schema "splatrig.run/1":
     profile, data   the hardware profile's name and the dataset's registry name
     steps           training steps done; max_steps: the steps asked for
     train_seconds   wall time of training (trainer.fit); run_seconds: of the whole run (setup, training, evaluation)
+    train_cpu_seconds  CPU time of training, all threads (on a shared machine a steadier measure than wall time)
     num_gaussians   Gaussians at the end of training
     metrics         {split: {"image": {metric: mean}, "body_box": {metric: mean}}}: whole-image metrics (the paper's)
                     and body-box metrics (Neural Body / Animatable NeRF; framework.evaluation.body_box), averaged
