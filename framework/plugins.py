@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
-from framework.registry import REGISTRIES, current_origin
+from framework.registry import REGISTRIES, current_origin, set_discovery
 
 ENV_VAR = "SPLATRIG_PLUGINS"
 PLUGIN_GROUP = "splatrig.plugins"
@@ -98,6 +98,17 @@ def failures() -> list[PluginFailure]:
 
 def failure_summary() -> str:
     return "\n".join(f.summary() for f in _failures)
+
+
+class EntryPointDiscovery:
+    """The registry's discovery hook: entry points and SPLATRIG_PLUGINS, imported once per process."""
+
+    def discover(self) -> str:
+        load_plugins()
+        return failure_summary()
+
+
+set_discovery(EntryPointDiscovery())
 
 
 def import_submodules(package: str) -> None:

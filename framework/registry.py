@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from framework.errors import SplatrigError
 
@@ -22,6 +22,24 @@ T = TypeVar("T")
 # Unset (None) when a module registers outside plugin discovery, e.g. a test imports a built-in directly; the origin
 # is then inferred from the distribution that installed the class's top-level package.
 current_origin: ContextVar[str | None] = ContextVar("splatrig_plugin_origin", default=None)
+
+
+class Discovery(Protocol):
+    """How components are found when a name is missing. The registry only knows this protocol; `framework.plugins`
+    (entry points, SPLATRIG_PLUGINS) installs the implementation, so the registry never imports its discoverer."""
+
+    def discover(self) -> str:
+        """Import every plugin once (a no-op afterwards); return a summary of those that failed ("" if none)."""
+        ...
+
+
+_discovery: Discovery | None = None
+
+
+def set_discovery(discovery: Discovery | None) -> None:
+    """Install the hook `Registry.entry` calls on a miss (done by `framework.plugins` when it is imported)."""
+    global _discovery
+    _discovery = discovery
 
 
 @functools.lru_cache(maxsize=1)
@@ -124,13 +142,12 @@ class Registry(Generic[T]):
         return iter(self._entries[n] for n in self.names())
 
     def entry(self, name: str) -> Entry[T]:
-        """The entry registered as `name`; plugins are discovered first if that has not happened yet."""
+        """The entry registered as `name`; plugins are discovered first (through the installed discovery hook) if
+        that has not happened yet."""
         if name not in self._entries:
-            from framework import plugins  # late: plugins imports this module
-
-            plugins.load_plugins()  # once per process; a no-op afterwards
+            failures = _discovery.discover() if _discovery is not None else ""
             if name not in self._entries:
-                raise UnknownComponentError(self._unknown_message(name, plugins.failure_summary()))
+                raise UnknownComponentError(self._unknown_message(name, failures))
         if name in self._conflicts:
             raise DuplicateComponentError(self._conflicts[name])
         return self._entries[name]

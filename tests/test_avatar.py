@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from framework.avatar import Avatar, GaussianParams, PoseRefiner
-from framework.gaussian_init import from_body_surface
 from framework.geometry import axis_angle_to_rotmat
+from framework.model.avatar import Avatar, GaussianParams, PoseRefiner
+from framework.model.gaussian_init import from_body_surface
 from framework.plugins import load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.types import Cameras, FrameBatch

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.kinematics import forward_kinematics, skin_points
+from framework.rig.kinematics import forward_kinematics, skin_points
 from plugins.body.anny_body import (
     PHENOTYPE_DEFAULTS,
     REDUCED_JOINTS,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from framework.kinematics import forward_kinematics
 from framework.registry import BODIES
+from framework.rig.kinematics import forward_kinematics
 from plugins.body.procedural import ProceduralBody, capsule_mesh
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from framework.gaussian_init import random_in_box
 from framework.geometry import quat_to_rotmat
+from framework.model.gaussian_init import random_in_box
 from framework.registry import REGISTRIES
 from framework.types import Gaussians
 

@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from framework.gaussian_init import from_body_surface
 from framework.geometry import axis_angle_to_rotmat, quat_to_rotmat
+from framework.model.gaussian_init import from_body_surface
 from framework.registry import REGISTRIES
-from framework.sh import eval_sh
+from framework.splat.sh import eval_sh
 from framework.types import Gaussians
 
 

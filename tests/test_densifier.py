@@ -8,8 +8,8 @@ import pytest
 import torch
 from torch import nn
 
-from framework import optim_surgery as surgery
 from framework.geometry import quat_to_rotmat
+from framework.model import optim_surgery as surgery
 from framework.plugins import load_plugins
 from framework.registry import DENSIFIERS
 

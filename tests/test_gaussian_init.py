@@ -9,10 +9,10 @@ import pytest
 import torch
 import trimesh
 
-from framework.gaussian_init import from_mesh_surface, from_points, random_in_box
 from framework.geometry import quat_to_rotmat
-from framework.posenc import normalize_to_bounds, posenc, posenc_dim
-from framework.sh import sh0_to_rgb
+from framework.model.gaussian_init import from_mesh_surface, from_points, random_in_box
+from framework.model.posenc import normalize_to_bounds, posenc, posenc_dim
+from framework.splat.sh import sh0_to_rgb
 
 
 def test_posenc_layout_and_dims():

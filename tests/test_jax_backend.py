@@ -12,9 +12,9 @@ import torch
 
 jax = pytest.importorskip("jax")
 
-from framework.jax_raster import composite, project  # noqa: E402
 from framework.plugins import load_plugins  # noqa: E402
 from framework.registry import RASTERIZERS  # noqa: E402
+from framework.splat.jax_raster import composite, project  # noqa: E402
 from framework.types import Cameras  # noqa: E402
 from plugins.rasterizer.jax_backend import (  # noqa: E402
     MIN_GAUSSIAN_BUCKET,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.kinematics import (
+from framework.rig.kinematics import (
     blend_transforms,
     forward_kinematics,
     forward_kinematics_rotmat,

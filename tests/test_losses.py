@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.ndimage import correlate1d
 
-from framework.losses import CompositeLoss
+from framework.model.losses import CompositeLoss
 from framework.plugins import load_plugins
 from framework.registry import LOSSES, UnknownComponentError
 from framework.types import Cameras, FrameBatch, RenderOutput
@@ -157,7 +157,7 @@ def test_lpips_loss_matches_module():
     entry = LOSSES.entry("lpips")
     if entry.unavailable_reason() is not None:
         pytest.skip(entry.unavailable_reason())
-    from framework.lpips import LPIPS
+    from framework.image.lpips import LPIPS
 
     render, batch = make(h=32, w=40)
     rgb = render.rgb.clone().requires_grad_(True)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from framework import lpips as lp
+from framework.image import lpips as lp
 
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "lpips"
 

@@ -95,7 +95,7 @@ def test_lpips_metrics():
         assert d.shape == (3,) and torch.isfinite(d).all()
         assert d[0] > 0.01 and d[1] > 0.01 and d[2].abs() < 1e-6
     # [0, 1] inputs go through the same network as the [-1, 1] module call
-    from framework.lpips import LPIPS
+    from framework.image.lpips import LPIPS
 
     direct = LPIPS("alex")(p.permute(0, 3, 1, 2) * 2 - 1, t.permute(0, 3, 1, 2) * 2 - 1)
     torch.testing.assert_close(alex(p, t), direct.detach(), rtol=1e-5, atol=1e-6)

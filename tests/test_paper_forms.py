@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from framework.lbs import apply_lbs
 from framework.plugins import load_plugins
 from framework.registry import DEFORMERS, LOSSES
+from framework.rig.lbs import apply_lbs
 from framework.types import Cameras, FrameBatch, Gaussians, RenderOutput
 
 load_plugins()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.polar import polar_decompose, polar_rotation, polar_rotation_values
+from framework.rig.polar import polar_decompose, polar_rotation, polar_rotation_values
 
 torch.manual_seed(0)
 D64 = torch.float64

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.sh import eval_sh
-from framework.sh_rotation import rotate_sh
+from framework.rig.sh_rotation import rotate_sh
+from framework.splat.sh import eval_sh
 
 D64 = torch.float64
 

@@ -110,7 +110,7 @@ def test_skirt_moves_unlike_the_body_skinning(seq, body):
     skinning would put them: weights from the nearest body surface (the avatar's initialisation) posed by LBS."""
     from framework.data.raycast import Camera
     from framework.data.zju_format import ZjuSequence
-    from framework.weight_field import surface_weights
+    from framework.rig.weight_field import surface_weights
 
     rest = np.load(seq / "ground_truth" / "garment_rest.npy").astype(np.float64)
     w = surface_weights(body.rest_vertices, body.faces, body.skin_weights, rest)  # [Vs, J]

@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from framework.build import build_component
-from framework.losses import CompositeLoss
+from framework.model.losses import CompositeLoss
 from framework.plugins import load_plugins
 from framework.types import Cameras, FrameBatch, RenderOutput
 

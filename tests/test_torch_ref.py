@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 from framework.interfaces.rasterizer import NEAR_PLANE
 from framework.plugins import load_plugins
-from framework.projection import project_gaussians
 from framework.registry import RASTERIZERS
-from framework.sh import eval_sh, sh_basis
+from framework.splat.projection import project_gaussians
+from framework.splat.sh import eval_sh, sh_basis
 from framework.testing.conformance import Scene, make_camera, make_random_scene, render_scene
 from framework.testing.reference import reference_render
 from framework.types import Cameras

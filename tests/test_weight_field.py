@@ -7,8 +7,8 @@ import pytest
 import torch
 import trimesh
 
-from framework.closest_point import closest_points
-from framework.weight_field import WeightField, build_weight_grid, grid_points, surface_weights
+from framework.rig.closest_point import closest_points
+from framework.rig.weight_field import WeightField, build_weight_grid, grid_points, surface_weights
 
 
 @pytest.fixture(autouse=True)

@@ -33,12 +33,12 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
 
-    from framework.gaussian_init import from_body_surface
     from framework.geometry import axis_angle_to_rotmat
+    from framework.model.gaussian_init import from_body_surface
     from framework.plugins import load_plugins
-    from framework.polar import polar_rotation
     from framework.registry import REGISTRIES
-    from framework.sh_rotation import rotate_sh
+    from framework.rig.polar import polar_rotation
+    from framework.rig.sh_rotation import rotate_sh
     from plugins.body.procedural import ProceduralBody
 
     load_plugins()

@@ -19,15 +19,15 @@ import time
 
 import torch
 
-from framework.avatar import Avatar, GaussianParams
 from framework.cameras import orbit_cameras
+from framework.model.avatar import Avatar, GaussianParams
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.types import FrameBatch
 
 
 def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
-    from framework.gaussian_init import from_body_surface
+    from framework.model.gaussian_init import from_body_surface
 
     body = BODIES.build(body_name)
     g = from_body_surface(body, num=num, sh_degree=3, seed=0, opacity=0.8)

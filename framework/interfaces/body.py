@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import ABC
 
 import torch
 from torch import Tensor, nn
+
+from framework.rig.kinematics import forward_kinematics, skin_points
 
 
 class BodyModel(nn.Module, ABC):
@@ -27,17 +29,25 @@ class BodyModel(nn.Module, ABC):
     def num_joints(self) -> int:
         return int(self.parents.shape[0])
 
-    @abstractmethod
+    def pose_description(self) -> str:
+        """How this body names itself in a pose-shape error (subclasses add what helps the user fix the pose)."""
+        return f"{self.registry_name or type(self).__name__} body"
+
     def bone_transforms(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
         """pose [B, J, 3], joints [B, J, 3] or None (rest joints) -> [B, J, 4, 4] rest-to-posed skinning transforms
-        (G_k @ translate(-j_k)), differentiable in pose and joints."""
+        (G_k @ translate(-j_k)), differentiable in pose and joints. Every body poses its skeleton the same way
+        (SMPL's convention, see the class docstring); bodies differ in their rest shape, not in kinematics."""
+        if pose.dim() != 3 or pose.shape[1:] != (self.num_joints, 3):
+            raise ValueError(
+                f"{self.pose_description()}: pose must be [B, {self.num_joints}, 3] axis-angle; "
+                f"got {tuple(pose.shape)}."
+            )
+        joints = self.rest_joints if joints is None else joints
+        return forward_kinematics(pose, joints, self.parents)[1]
 
     def posed_vertices(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
         """Linear blend skinning of the rest mesh, [B, V, 3]."""
-        T = self.bone_transforms(pose, joints)  # [B, J, 4, 4]
-        blended = torch.einsum("vj,bjkl->bvkl", self.skin_weights.to(T.dtype), T)  # [B, V, 4, 4]
-        v = self.rest_vertices.to(T.dtype)
-        return (blended[..., :3, :3] @ v.unsqueeze(-1)).squeeze(-1) + blended[..., :3, 3]
+        return skin_points(self.rest_vertices, self.skin_weights, self.bone_transforms(pose, joints))
 
     def vertex_normals(self, vertices: Tensor | None = None) -> Tensor:
         """Area-weighted unit vertex normals [V, 3] of the rest mesh, or of `vertices` [..., V, 3] (e.g. posed)."""

@@ -15,9 +15,9 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from framework.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.build import ConfigError, build_component, node_kwargs
-from framework.losses import CompositeLoss
+from framework.model.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
+from framework.model.losses import CompositeLoss
 from framework.types import FrameBatch, Gaussians
 
 
@@ -72,7 +72,7 @@ class SplatModule(L.LightningModule):
 
     # ----------------------------------------------------------------------------------------------- construction
     def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
-        from framework import gaussian_init
+        from framework.model import gaussian_init
 
         g = self.cfg["gaussians"]
         seed = int(self.cfg.get("seed", 0))

@@ -20,7 +20,7 @@ from framework.interfaces.rasterizer import (
     NEAR_PLANE,
     TRANSMITTANCE_MIN,
 )
-from framework.sh import SH_C0, SH_C1, SH_C2, SH_C3
+from framework.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def _rotation(q: Tensor) -> Tensor:

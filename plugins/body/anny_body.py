@@ -54,7 +54,6 @@ from torch import Tensor
 
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics
 from framework.paths import cache_dir
 from framework.registry import register
 
@@ -261,14 +260,8 @@ class AnnyBody(BodyModel):
         self.register_buffer("full_to_reduced", torch.as_tensor(to_reduced, dtype=torch.long), persistent=False)
         self.register_buffer("kept_full_indices", torch.as_tensor(kept, dtype=torch.long), persistent=False)
 
-    def bone_transforms(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
-        if pose.dim() != 3 or pose.shape[1:] != (self.num_joints, 3):
-            raise ValueError(
-                f"anny body ({self.skeleton} skeleton): pose must be [B, {self.num_joints}, 3] axis-angle; got "
-                f"{tuple(pose.shape)}. The {self.skeleton} skeleton has {self.num_joints} joints (see joint_names)."
-            )
-        joints = self.rest_joints if joints is None else joints
-        return forward_kinematics(pose, joints, self.parents)[1]
+    def pose_description(self) -> str:
+        return f"anny body ({self.skeleton} skeleton, {self.num_joints} joints: see joint_names)"
 
     def full_pose(self, pose: Tensor) -> Tensor:
         """This body's pose [B, J, 3] -> the full 104-bone pose [B, 104, 3] with identity on folded bones."""

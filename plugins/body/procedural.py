@@ -16,10 +16,8 @@ import math
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics
 from framework.registry import register
 
 # (name, parent, rest joint position)
@@ -162,11 +160,3 @@ class ProceduralBody(BodyModel):
         self.register_buffer("rest_joints", torch.as_tensor(mesh["rest_joints"], dtype=f32))  # [J, 3]
         self.register_buffer("uvs", torch.as_tensor(mesh["uvs"], dtype=f32))  # [V, 2]
         self.register_buffer("face_uvs", self.faces.clone())  # [F, 3]
-
-    def bone_transforms(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
-        if pose.dim() != 3 or pose.shape[1:] != (self.num_joints, 3):
-            raise ValueError(
-                f"procedural body: pose must be [B, {self.num_joints}, 3] axis-angle; got {tuple(pose.shape)}."
-            )
-        joints = self.rest_joints if joints is None else joints
-        return forward_kinematics(pose, joints, self.parents)[1]

@@ -25,8 +25,8 @@ from torch import Tensor
 
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
-from framework.kinematics import forward_kinematics, skin_points
 from framework.registry import register
+from framework.rig.kinematics import skin_points
 
 SMPL_JOINT_NAMES = [
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
@@ -128,14 +128,8 @@ class SMPLBody(BodyModel):
         # [(J-1)*9, V*3] pose corrective basis; only kept when used
         self.register_buffer("posedirs", model.posedirs.to(f32) if self.pose_blendshapes else None)
 
-    def bone_transforms(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
-        if pose.dim() != 3 or pose.shape[1:] != (self.num_joints, 3):
-            raise ValueError(
-                f"smpl body: pose must be [B, {self.num_joints}, 3] axis-angle ({self.model_type.upper()} has "
-                f"{self.num_joints} joints, root first); got {tuple(pose.shape)}."
-            )
-        joints = self.rest_joints if joints is None else joints
-        return forward_kinematics(pose, joints, self.parents)[1]
+    def pose_description(self) -> str:
+        return f"smpl body ({self.model_type.upper()} has {self.num_joints} joints, root first)"
 
     def posed_vertices(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
         """LBS of the rest mesh [B, V, 3]; adds smplx's pose correctives first when `pose_blendshapes` is on."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from framework.corrector_mlp import MLPCorrector
+from framework.model.corrector_mlp import MLPCorrector
 from framework.registry import register
 from framework.types import Gaussians
 
@@ -20,6 +20,6 @@ class LatentCorrector(MLPCorrector):
             found = None if gaussians.latents is None else tuple(gaussians.latents.shape)
             raise ValueError(
                 f"corrector 'latent': Gaussians need latents [N, {self.feature_dim}], found {found}; initialise them "
-                "with framework.gaussian_init (which sets 9-dim codes) or use corrector=posenc."
+                "with framework.model.gaussian_init (which sets 9-dim codes) or use corrector=posenc."
             )
         return gaussians.latents

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from framework.corrector_mlp import MLPCorrector
-from framework.posenc import posenc, posenc_dim
+from framework.model.corrector_mlp import MLPCorrector
+from framework.model.posenc import posenc, posenc_dim
 from framework.registry import register
 from framework.types import Gaussians
 

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from framework.lbs import LBSDeformerBase
+from framework.model.lbs_deformer import LBSDeformerBase
 from framework.registry import register
 
 
 @register("deformer", "lbs")
 class LBSDeformer(LBSDeformerBase):
-    """Plain LBS: grid weights from the body surface (or baked per-Gaussian weights); see `framework.lbs`."""
+    """Plain LBS: grid weights from the body surface (or baked per-Gaussian weights); see `framework.rig.lbs`."""

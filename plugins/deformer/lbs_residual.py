@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from framework.lbs import LBSDeformerBase
-from framework.posenc import normalize_to_bounds, posenc, posenc_dim
+from framework.model.lbs_deformer import LBSDeformerBase
+from framework.model.posenc import normalize_to_bounds, posenc, posenc_dim
 from framework.registry import register
 
 

@@ -25,9 +25,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from framework import optim_surgery as surgery
 from framework.geometry import quat_to_rotmat
 from framework.interfaces.densifier import Densifier
+from framework.model import optim_surgery as surgery
 from framework.registry import register
 
 

@@ -10,7 +10,7 @@ from framework.types import FrameBatch, RenderOutput
 
 
 def _requires() -> str | None:
-    from framework.lpips import LPIPSWeightsMissing, weights_file
+    from framework.image.lpips import LPIPSWeightsMissing, weights_file
 
     try:
         weights_file("alex")
@@ -29,7 +29,7 @@ class LPIPSLoss(Loss):
 
     def __init__(self, net: str = "alex") -> None:
         super().__init__()
-        from framework.lpips import LPIPS
+        from framework.image.lpips import LPIPS
 
         self.net = net
         self.__dict__["_model"] = LPIPS(net)  # bypasses nn.Module registration (see class docstring)

@@ -9,17 +9,9 @@ from framework.interfaces.metric import Metric
 from framework.registry import register
 
 
-def _check_images(name: str, pred: Tensor, target: Tensor) -> None:
-    if pred.shape != target.shape or pred.dim() != 4 or pred.shape[-1] != 3:
-        raise ValueError(
-            f"metric '{name}': expected pred and target of one shape [B, H, W, 3], got {tuple(pred.shape)} and "
-            f"{tuple(target.shape)}."
-        )
-
-
 def _requires(net: str):
     def check() -> str | None:
-        from framework.lpips import LPIPSWeightsMissing, weights_file
+        from framework.image.lpips import LPIPSWeightsMissing, weights_file
 
         try:
             weights_file(net)
@@ -40,9 +32,9 @@ class _LPIPSMetric(Metric):
 
     @torch.no_grad()
     def __call__(self, pred: Tensor, target: Tensor) -> Tensor:
-        from framework.lpips import LPIPS
+        from framework.image.lpips import LPIPS
 
-        _check_images(self.registry_name, pred, target)
+        self.check_images(pred, target)
         if self._model is None:
             self._model = LPIPS(self.net)
         self._model.to(pred.device)

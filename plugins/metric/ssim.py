@@ -10,14 +10,6 @@ from framework.registry import register
 WINDOW = 11
 
 
-def _check_images(name: str, pred: Tensor, target: Tensor) -> None:
-    if pred.shape != target.shape or pred.dim() != 4 or pred.shape[-1] != 3:
-        raise ValueError(
-            f"metric '{name}': expected pred and target of one shape [B, H, W, 3], got {tuple(pred.shape)} and "
-            f"{tuple(target.shape)}."
-        )
-
-
 @register("metric", "ssim")
 class SSIM(Metric):
     """Mean SSIM per image over the 'valid' window positions and the three channels.
@@ -31,7 +23,7 @@ class SSIM(Metric):
     def __call__(self, pred: Tensor, target: Tensor) -> Tensor:
         from kornia.metrics import ssim
 
-        _check_images("ssim", pred, target)
+        self.check_images(pred, target)
         if min(pred.shape[1], pred.shape[2]) < WINDOW:
             raise ValueError(
                 f"metric 'ssim': images must be at least {WINDOW}x{WINDOW} pixels for the standard window, got "

@@ -1,12 +1,12 @@
 """`jax`: the rasterizer written in JAX (`jax.jit`, gradients by `jax.vjp`), bridged to torch autograd.
 
 One render is three steps, two of them jitted JAX programs with static shapes:
-1. `framework.jax_raster.project` (JAX): EWA projection, SH colour and the screen box for C cameras x N Gaussians.
+1. `framework.splat.jax_raster.project` (JAX): EWA projection, SH colour and the screen box for C cameras x N Gaussians.
    N is padded to a bucket (4 per octave) so densification recompiles only a handful of times.
 2. Pair list (torch, no gradient): every (Gaussian, pixel) pair in the boxes with alpha >= 1/255, sorted by
    (camera, pixel, depth) with one integer sort. This is a discrete function with no gradient, and torch's CPU
    sort is about 10x faster than JAX's, so it stays in torch. The list is padded to a bucket (4 per octave).
-3. `framework.jax_raster.composite` (JAX): front-to-back compositing over the sorted pairs.
+3. `framework.splat.jax_raster.composite` (JAX): front-to-back compositing over the sorted pairs.
 
 Each JAX step is one `torch.autograd.Function` whose forward runs `jax.vjp` and whose backward calls the saved VJP
 function. The projected centres `means2d` are a real tensor between the two Functions, so `RenderOutput.means2d.grad`
@@ -36,13 +36,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from framework.interfaces.rasterizer import ALPHA_MIN, FAR_PLANE, NEAR_PLANE, Rasterizer
+from framework.interfaces.rasterizer import ALPHA_MIN, BOX_MARGIN, FAR_PLANE, NEAR_PLANE, Rasterizer
 from framework.registry import register
 from framework.types import Cameras, RenderOutput
 
 log = logging.getLogger(__name__)
 
-BOX_MARGIN = 1e-3  # px added to the float box so rounding never drops a pixel right on its edge
 MIN_PAIR_BUCKET = 4096  # small scenes (tests, previews) share one compiled shape
 MIN_GAUSSIAN_BUCKET = 256
 
@@ -158,7 +157,7 @@ class _Project(torch.autograd.Function):
     def forward(ctx: Any, means, quats, scales, sh, opacities, viewmats, Ks, cfg: dict):  # type: ignore[override]
         import jax
 
-        from framework.jax_raster import project
+        from framework.splat.jax_raster import project
 
         jdev = cfg["jdev"]
         dev = means.device
@@ -205,7 +204,7 @@ class _Composite(torch.autograd.Function):
     ):
         import jax
 
-        from framework.jax_raster import composite
+        from framework.splat.jax_raster import composite
 
         jdev = cfg["jdev"]
         dev = means2d.device

@@ -1,7 +1,8 @@
 """Pure-JAX math of the `jax` rasterizer: EWA projection + SH colour, and compositing over (Gaussian, pixel) pairs.
 
-The rules are those of `framework.interfaces.rasterizer` and mirror `framework.projection` / `framework.sh` line by
-line, so the two backends agree to float rounding. Everything here has static shapes, which is what `jax.jit` needs:
+The rules are those of `framework.interfaces.rasterizer` and mirror `framework.splat.projection` /
+`framework.splat.sh` line by line, so the two backends agree to float rounding. Everything here has static shapes,
+which is what `jax.jit` needs:
 
 - `project` works on a padded Gaussian count (the caller pads N to a bucket so densification does not recompile).
 - `composite` works on a padded list of pairs sorted by (camera, pixel, depth); the list itself is built outside JAX
@@ -19,17 +20,14 @@ This module imports jax at import time; only import it where jax is known to be 
 
 from __future__ import annotations
 
-import math
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 
-from framework.interfaces.rasterizer import ALPHA_MAX, ALPHA_MIN, EPS2D, TRANSMITTANCE_MIN
-from framework.projection import EXTEND_MAX, FOV_MARGIN
-from framework.sh import SH_C0, SH_C1, SH_C2, SH_C3
-
-LOG_T_MIN = math.log(TRANSMITTANCE_MIN)
+from framework.splat.contract import ALPHA_MAX, ALPHA_MIN, EPS2D, LOG_T_MIN
+from framework.splat.projection import EXTEND_MAX, FOV_MARGIN
+from framework.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def quat_to_rotmat(q: jax.Array) -> jax.Array:
@@ -165,7 +163,7 @@ def project(
     dirs = means[None, :, :] - cam_pos[:, None, :]  # [C, N, 3]
     colors = sh_colors(sh_degree, sh[None], dirs)  # [C, N, 3] (coefficients broadcast over cameras)
 
-    # Discrete screen box (no gradient), exactly as framework.projection computes it.
+    # Discrete screen box (no gradient), exactly as framework.splat.projection computes it.
     op = jax.lax.stop_gradient(jnp.broadcast_to(opacities[None, :], z.shape)).astype(z.dtype)
     sxx = jax.lax.stop_gradient(cxx)
     syy = jax.lax.stop_gradient(cyy)

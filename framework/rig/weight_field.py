@@ -1,8 +1,8 @@
 """Blend-weight field: the body's skinning weights extended from its surface to the whole canonical box.
 
 Every grid node takes the weights of its closest point on the rest surface (closest triangle, barycentric
-interpolation of the triangle's vertex weights, computed exactly by `framework.closest_point`), so a Gaussian off the
-skin moves with the nearest skin. The grid is computed once per (body, box, resolution), cached on disk under
+interpolation of the triangle's vertex weights, computed exactly by `framework.rig.closest_point`), so a Gaussian off
+the skin moves with the nearest skin. The grid is computed once per (body, box, resolution), cached on disk under
 `cache_dir()/weight_fields`, and sampled trilinearly with `grid_sample` (points outside the box clamp to its border),
 then renormalised so the weights are a partition of unity. Memory: R^3 * J * 4 bytes (64^3 x 24 joints = 25 MB).
 """
@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from framework.closest_point import closest_points
 from framework.paths import cache_dir
+from framework.rig.closest_point import closest_points
 
 _CACHE_VERSION = "1"
 

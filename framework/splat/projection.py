@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from framework.geometry import quat_to_rotmat
-from framework.interfaces.rasterizer import ALPHA_MIN, EPS2D, FAR_PLANE, NEAR_PLANE
+from framework.splat.contract import ALPHA_MIN, EPS2D, FAR_PLANE, NEAR_PLANE
 
 EXTEND_MAX = 3.33
 FOV_MARGIN = 0.3

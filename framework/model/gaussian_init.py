@@ -19,8 +19,8 @@ import torch
 from torch import Tensor
 
 from framework.geometry import rotmat_to_quat
-from framework.posenc import normalize_to_bounds, posenc
-from framework.sh import rgb_to_sh0
+from framework.model.posenc import normalize_to_bounds, posenc
+from framework.splat.sh import rgb_to_sh0
 from framework.types import Gaussians, num_sh_coeffs
 
 

@@ -1,4 +1,4 @@
-"""Rotate real SH coefficients (degrees 1-3, the 3DGS/gsplat basis of `framework.sh`) by rotation matrices.
+"""Rotate real SH coefficients (degrees 1-3, the 3DGS/gsplat basis of `framework.splat.sh`) by rotation matrices.
 
 Rotating a Gaussian by R must rotate its view-dependent colour: the new coefficients c' satisfy
 f'(d) = f(R^T d) for every direction d. Each degree l is closed under rotation, Y_l(R^T d) = D_l(R) Y_l(d), so c'_l is
@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from framework.sh import sh_basis
+from framework.splat.sh import sh_basis
 
 # Seeded search (numpy/torch Generator 0, best of 3000 random 7-point sets) for the smallest max condition number
 # of the degree-1..3 blocks of the basis: 3.21.

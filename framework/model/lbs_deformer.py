@@ -1,0 +1,82 @@
+"""The LBS deformer shared by the `lbs` and `lbs_residual` plugins: weights from the blend-weight field (or baked per
+Gaussian), the L_w sampling points, then `framework.rig.lbs.apply_lbs`. It holds state (the bound field), so it lives
+with the model rather than with the stateless rig math."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from framework.interfaces.deformer import Deformer, DeformOutput
+from framework.rig.lbs import CENTRE_MODES, STRETCH_MODES, apply_lbs, six_points, weight_std
+from framework.rig.weight_field import WeightField
+from framework.types import Gaussians
+
+
+class LBSDeformerBase(Deformer):
+    """Shared by the `lbs` and `lbs_residual` deformers (registered in plugins/deformer/).
+
+    Weights: the Gaussians' baked `skin_weights` when present, else the weight field at the canonical means.
+
+    aux["weight_std"] [N] is the L_w term (std of the weights over the six points x +- s_l a_l); it is computed only
+    when gradients are enabled (training), `weight_std` is on and a loss term reads it (`use_aux`), and is zero for
+    baked weights (nothing to smooth). `centres` chooses how centres move (`framework.rig.lbs.apply_lbs`).
+    """
+
+    def __init__(
+        self,
+        grid_resolution: int = 64,
+        stretch: str = "diag",
+        weight_std: bool = True,
+        use_cache: bool = True,
+        centres: str = "blended",
+    ) -> None:
+        super().__init__()
+        if stretch not in STRETCH_MODES:
+            raise ValueError(f"deformer.stretch: expected one of {STRETCH_MODES}, got '{stretch}'.")
+        if centres not in CENTRE_MODES:
+            raise ValueError(f"deformer.centres: expected one of {CENTRE_MODES}, got '{centres}'.")
+        self.grid_resolution, self.stretch, self.centres = grid_resolution, stretch, centres
+        self.weight_std_enabled, self.use_cache = weight_std, use_cache
+        self.report_weight_std = weight_std
+        self.field: WeightField | None = None
+
+    def bind(self, body: object | None, bounds: Tensor | None) -> None:
+        if body is None or bounds is None:
+            raise ValueError(
+                f"deformer '{self.registry_name}' needs a body model and a canonical box; for static scenes use "
+                "deformer=identity."
+            )
+        self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
+
+    def use_aux(self, keys: frozenset[str]) -> None:
+        self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
+
+    def weights(self, points: Tensor) -> Tensor:
+        """Blend weights [..., J] at canonical points [..., 3]."""
+        if self.field is None:
+            raise RuntimeError(f"deformer '{self.registry_name}': call bind(body, bounds) before using it.")
+        return self.field.sample(points)
+
+    @torch.no_grad()
+    def bake(self, gaussians: Gaussians) -> Tensor:
+        """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference."""
+        return self.weights(gaussians.means).detach().clone()
+
+    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None) -> DeformOutput:
+        if bone_transforms is None:
+            raise ValueError(f"deformer '{self.registry_name}' needs bone_transforms [J, 4, 4]; got None.")
+        aux: dict[str, Tensor] = {}
+        if gaussians.skin_weights is not None:
+            w = gaussians.skin_weights
+            aux["weight_std"] = w.new_zeros(gaussians.num)
+        elif self.report_weight_std and torch.is_grad_enabled():
+            # one lookup for the centre and the six L_w points: the field (and F_dw) cost is per call, then per point
+            points = torch.cat([gaussians.means.unsqueeze(-2), six_points(gaussians)], dim=-2)  # [N, 7, 3]
+            w7 = self.weights(points)  # [N, 7, J]
+            w = w7[:, 0]
+            aux["weight_std"] = weight_std(w7[:, 1:])
+        else:
+            w = self.weights(gaussians.means)  # [N, J]
+        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch, self.centres)
+        return DeformOutput(posed=posed, weights=w, aux=aux)

@@ -1,0 +1,2 @@
+"""Splatting math with no state: camera projection of Gaussians, the SH colour basis, the (Gaussian, pixel) pair
+enumeration and the JAX kernels. Imports torch, jax and the core modules (`framework.types`, `geometry`) only."""
