@@ -99,11 +99,17 @@ def build_table(runs: list[Run]) -> Table4:
         return tuple(x for x in own[v] if not x.lstrip("+").startswith("experiment="))
 
     references = [v for v in variants if groups[v][0].experiment == REFERENCE and not extras(v)]
-    if len(references) != 1:
+    if not references:
         found = sorted({r.experiment for r in runs})
         raise ReportError(
-            f"table4 needs exactly one set of {REFERENCE} runs to compare with, found {len(references)} among the "
-            f"experiments {found}; include the sweep directory with the {REFERENCE} runs (or leave out the extra one)."
+            f"table4 compares every row with {REFERENCE}, but the runs given hold none (experiments: {found}); "
+            f"include the sweep directory with the {REFERENCE} runs."
+        )
+    if len(references) > 1:
+        raise ReportError(
+            f"table4 found {len(references)} differently configured sets of {REFERENCE} runs ("
+            + "; ".join(" ".join(v) for v in references)
+            + "); report each configuration on its own (pass only its sweep directories)."
         )
     ref_runs = groups[references[0]]
 
