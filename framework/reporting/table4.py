@@ -186,7 +186,9 @@ def to_markdown(table: Table4, title: str = "Table 4 (ablations), reproduced") -
         "σ = sqrt(s_row²/n_row + s_full²/n_full), the seed noise of the difference of two means. Verdict (PSNR): "
         "**agrees** = same sign as the paper's Δ and |Δ| > 2σ; **disagrees** = opposite sign beyond 2σ (or a change "
         "beyond 2σ where the paper saw none); **within noise** = |Δ| ≤ 2σ (where the paper saw no change, that "
-        "agrees). The paper's SSIM and LPIPS columns were not available to us: only PSNR Δs are compared.",
+        "agrees). The paper's SSIM and LPIPS columns were not available to us: only PSNR Δs are compared. A body-box "
+        "PSNR Δ equals the whole-image one when both models leave the background exactly black (the background then "
+        "adds the same constant to every row's PSNR); SSIM and LPIPS inside the box do differ.",
     ]
     for region, r_label in REGIONS:
         parts += ["", f"## {r_label}", "", region_markdown(table, region)]
@@ -216,7 +218,7 @@ def figure(table: Table4):
     import matplotlib.pyplot as plt
 
     rows = [r for r in table.rows if any(c.diff is not None for c in r.cells.values())]
-    fig, axes = plt.subplots(1, len(SPLITS), figsize=(max(8.0, 1.0 * len(rows) + 4), 5.5), sharey=True)
+    fig, axes = plt.subplots(1, len(SPLITS), figsize=(max(11.0, 1.1 * len(rows) + 5), 5.5), sharey=True)
     width = 0.27
     for ax, (split, s_label) in zip(axes, SPLITS, strict=True):
         xs = range(len(rows))
@@ -232,7 +234,7 @@ def figure(table: Table4):
         ax.set_xticks(list(xs))
         ax.set_xticklabels([r.experiment if not r.key or r.paper else r.label for r in rows], rotation=60,
                            ha="right", fontsize=8)  # fmt: skip
-        ax.set_title(f"{s_label}: PSNR difference to the complete model")
+        ax.set_title(f"{s_label}: Δ PSNR to {REFERENCE}")
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("Δ PSNR (dB)")
     axes[0].legend(fontsize=8)
