@@ -49,8 +49,8 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
     import trimesh
 
     from framework import plugins
+    from framework.data.zju.dataset import ZjuMocapDataset
     from framework.registry import BODIES
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
 
     plugins.load_plugins()
     faces = BODIES.build("procedural").faces.numpy()
@@ -93,8 +93,8 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
 def test_loaded_pose_and_root_reproduce_the_stored_vertices(seq):
     """params (poses, Rh, Th) + the body's LBS give the stored world vertices: the poses really belong to the body."""
     from framework import plugins
+    from framework.data.zju.dataset import ZjuMocapDataset
     from framework.registry import BODIES
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
 
     plugins.load_plugins()
     body = BODIES.build("procedural")

@@ -13,7 +13,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial.transform import Rotation
 
 from framework.data.studio import StudioSettings, generate
-from framework.data.zju_format import load_pickled_dict, read_image, read_mask_file
+from framework.data.zju.layout import load_pickled_dict, read_image, read_mask_file
 
 REALISTIC = StudioSettings(resolution=64, views=4, frames=12, seed=0, body="procedural", supersample=1,
                            pose_noise_deg=3.0, root_noise_m=0.01, mask_error_px=3.0, garment="skirt",
@@ -99,7 +99,7 @@ def test_parser_masks_err_in_a_band_of_the_requested_width(seq):
             changed_share.append(changed[edge].mean())
     assert min(reach) >= 0.6 * w
     assert np.mean(changed_share) > 0.3
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
+    from framework.data.zju.dataset import ZjuMocapDataset
 
     ds = ZjuMocapDataset(root=str(seq), split="train", protocol=None, train_frames=[0, 12, 1], novel_pose_frames=[11])
     assert ds.seq.mask_path(0, 0).parent.parent.name == "mask_cihp"
@@ -109,7 +109,7 @@ def test_skirt_moves_unlike_the_body_skinning(seq, body):
     """The skirt's vertices are rendered (they fall inside the exact silhouettes) and are far from where the body's
     skinning would put them: weights from the nearest body surface (the avatar's initialisation) posed by LBS."""
     from framework.data.raycast import Camera
-    from framework.data.zju_format import ZjuSequence
+    from framework.data.zju.reader import ZjuSequence
     from framework.rig.weight_field import surface_weights
 
     rest = np.load(seq / "ground_truth" / "garment_rest.npy").astype(np.float64)

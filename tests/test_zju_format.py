@@ -11,14 +11,9 @@ import numpy as np
 import pytest
 
 from framework.data.boundary import boundary_mask, boundary_mask_bruteforce
-from framework.data.zju_format import (
-    ZjuFormatError,
-    ZjuSequence,
-    ZjuWriter,
-    frame_number_from_path,
-    image_relpath,
-    zju_camera_names,
-)
+from framework.data.zju.layout import ZjuFormatError, frame_number_from_path, image_relpath, zju_camera_names
+from framework.data.zju.reader import ZjuSequence
+from framework.data.zju.writer import ZjuWriter
 
 
 # ------------------------------------------------------------------------------------------------ synthetic rigs

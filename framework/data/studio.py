@@ -145,7 +145,7 @@ def _init_worker(state: dict) -> None:
 
 def _render_frame(f: int) -> int:
     from framework.data.imperfections import parser_like_mask
-    from framework.data.zju_format import ZjuWriter
+    from framework.data.zju.writer import ZjuWriter
 
     s = _STATE
     verts = s["posed"][f].astype(np.float64)  # [V, 3] world, the clean pose
@@ -197,7 +197,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
 
     from framework.data.appearance import Appearance
     from framework.data.motions import Rig, axis_angle_to_matrix, build_sequence
-    from framework.data.zju_format import ZjuWriter, zju_camera_names
+    from framework.data.zju.layout import zju_camera_names
+    from framework.data.zju.writer import ZjuWriter
     from framework.paths import data_dir
 
     root = Path(out) if out is not None else data_dir() / "synthetic_studio" / settings.key()
@@ -325,7 +326,7 @@ def _fitted(settings: StudioSettings, body, poses: np.ndarray, Rroot: np.ndarray
 
 def _write_ground_truth(root: Path, writer, params: list[dict], posed: np.ndarray, skirt, skirt_posed) -> None:
     """ground_truth/: the clean params and body vertices, and the skirt (rest mesh and per-frame vertices)."""
-    from framework.data.zju_format import normalize_params, save_pickled_dict
+    from framework.data.zju.layout import normalize_params, save_pickled_dict
 
     gt = root / "ground_truth"
     for sub in ("params", "vertices") + (("garment",) if skirt is not None else ()):

@@ -85,11 +85,15 @@ class PoseRefiner(nn.Module):
         self.joint_residual = nn.Parameter(torch.zeros(num_joints, 3))  # [J, 3]
 
     def forward(self, frame: Tensor, pose: Tensor, rest_joints: Tensor) -> tuple[Tensor, Tensor]:
-        """frame [B], pose [B, J, 3] -> refined pose [B, J, 3], joints [B, J, 3]."""
+        """frame [B], pose [B, J, 3] -> refined pose [B, J, 3], joints [B, J, 3].
+
+        A negative frame id marks a pose from outside the training sequence (a motion file, a hand-made pose): it
+        gets the shared joint residual but no per-frame pose residual."""
         joints = rest_joints.expand(pose.shape[0], -1, -1)
         if not self.enabled:
             return pose, joints
-        return pose + self.pose_residual[frame], joints + self.joint_residual
+        known = (frame >= 0).to(pose.dtype)[:, None, None]  # [B, 1, 1]
+        return pose + known * self.pose_residual[frame.clamp_min(0)], joints + self.joint_residual
 
 
 @dataclass
@@ -140,7 +144,7 @@ class Avatar(nn.Module):
         transforms = self.body.bone_transforms(pose, joints)[0]  # [J, 4, 4]
         if batch.root is not None:
             transforms = batch.root[0] @ transforms
-        return transforms, pose[0].reshape(-1)
+        return transforms, self.body.pose_features(pose)[0]
 
     def pose(self, batch: FrameBatch) -> tuple[Gaussians, Gaussians, dict[str, Tensor]]:
         """(canonical, posed, aux): F_a correction then skinning; cached across cameras when gradients are off."""
