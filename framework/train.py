@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 # torch's OpenMP threads spin-wait by default; on a busy 2-core machine that starves the other thread (measured 3-10x
 # slower steps). Must be set before torch is imported; an explicit user setting wins.
@@ -65,6 +66,7 @@ def run(cfg: DictConfig) -> float | None:
 
     from framework.build import build_component
     from framework.evaluate import evaluate_module
+    from framework.evaluation.run_record import metrics_from_summary, write_run_record
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
@@ -72,6 +74,7 @@ def run(cfg: DictConfig) -> float | None:
     from framework.runtime import reuse_freed_memory
 
     reuse_freed_memory()
+    started = time.perf_counter()
     load_plugins()
     quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)
@@ -107,16 +110,10 @@ def run(cfg: DictConfig) -> float | None:
 
     logger = TensorBoardLogger(save_dir=str(out_dir), name="tb", version="") if cfg.logger.name else None
     ckpt_dir = out_dir / "checkpoints"
+    # No "best" checkpoint: validation runs on a test split (novel views), and a model chosen on test data would
+    # report optimistic test numbers. We keep the model training ends with: last.ckpt (also saved periodically, to
+    # resume) and final.ckpt (blend weights baked).
     callbacks = [
-        ModelCheckpoint(
-            dirpath=ckpt_dir,
-            filename="best",
-            monitor="val/psnr",
-            mode="max",
-            save_last=True,
-            save_top_k=1,
-            auto_insert_metric_name=False,
-        ),  # fmt: skip
         ModelCheckpoint(
             dirpath=ckpt_dir,
             filename="last",
@@ -150,8 +147,11 @@ def run(cfg: DictConfig) -> float | None:
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
-                            f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
+                            f"checkpoints/last.ckpt.")  # fmt: skip
+    fit_started, fit_cpu = time.perf_counter(), time.process_time()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    train_seconds, train_cpu_seconds = time.perf_counter() - fit_started, time.process_time() - fit_cpu
+    trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
     if module.bake_weights():
         trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)
@@ -160,16 +160,35 @@ def run(cfg: DictConfig) -> float | None:
     if cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False):
         result = evaluate_module(module, dm, list(cfg.eval.splits), list(cfg.eval.metrics), out_dir / "eval",
                                  logger=logger, step=trainer.global_step)  # fmt: skip
+    config_name, overrides = _hydra_job()
+    record = write_run_record(
+        out_dir, experiment=str(cfg.task_name), config_name=config_name, overrides=overrides,
+        seed=int(cfg.seed), profile=str(cfg.profile.name), data=str(cfg.data.name), steps=int(trainer.global_step),
+        max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
+        train_cpu_seconds=round(train_cpu_seconds, 2),
+        run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
+        metrics=metrics_from_summary(result),
+    )  # fmt: skip
     print(f"\n[splatrig] results: {out_dir}")
     print(f"[splatrig]   checkpoints: {ckpt_dir}  (resume with ckpt_path={ckpt_dir / 'last.ckpt'})")
     print(f"[splatrig]   tensorboard: tensorboard --logdir {out_dir / 'tb'}")
     if result:
-        print(f"[splatrig]   metrics: {out_dir / 'eval'}")
+        print(f"[splatrig]   metrics: {out_dir / 'eval'}, {record}")
     metric = str(cfg.metric)
     if metric in result:
         return float(result[metric])
     logged = trainer.callback_metrics.get(metric)
     return None if logged is None else float(logged)
+
+
+def _hydra_job() -> tuple[str | None, list[str]]:
+    """(primary config name, this job's overrides) as Hydra knows them; (None, []) outside a Hydra run."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None, []
+    hc = HydraConfig.get()
+    return hc.job.config_name, list(hc.overrides.task)
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")

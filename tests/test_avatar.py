@@ -171,6 +171,8 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     module = Module()
     module.avatar = avatar
     module.log = lambda *a, **k: None
+    stage2_started: list[int] = []
+    module.begin_stage2 = stage2_started.append  # the module restarts its densifier schedule there
     switch = StageSwitch(stage1_steps=10)
 
     def grads_after_step(step: int) -> dict[str, bool]:
@@ -195,3 +197,4 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     stage2 = grads_after_step(10)
     assert stage2 == {"gaussians": True, "pose": True, "joints": True, "corrector": True, "weight_mlp": True,
                       "latents": True}  # fmt: skip
+    assert stage2_started == [10]

@@ -62,8 +62,7 @@ class SplatModule(L.LightningModule):
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
         )  # fmt: skip
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
-        if getattr(deformer, "report_weight_std", False) and not self.loss_fn.uses("weight_std"):
-            deformer.report_weight_std = False  # L_w off: no lookups (and no F_dw) at the six points per Gaussian
+        deformer.use_aux(self.loss_fn.aux_keys)  # e.g. no L_w term: the deformer skips the six-point weight lookups
         self.densifier = build_component("densifier", cfg["densifier"])
         self.densifier_state: dict[str, Any] = (
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
@@ -193,6 +192,12 @@ class SplatModule(L.LightningModule):
     def last_train_psnr(self) -> float:
         """PSNR of the last training render (read by the progress bar when it refreshes; no host sync per step)."""
         return 0.0 if self._last_train_psnr is None else float(self._last_train_psnr)
+
+    def begin_stage2(self, step: int) -> None:
+        """Stage 2 starts at `step`: the densifier's schedule (opacity resets) counts from here on."""
+        restart = getattr(self.densifier, "restart_schedule", None)
+        if restart is not None:
+            restart(self.densifier_state, step)
 
     def _densifier_optimizers(self, optimizer: torch.optim.Optimizer) -> dict[str, torch.optim.Optimizer]:
         """One optimizer serves every per-Gaussian key; the surgery finds each key's group by its name."""

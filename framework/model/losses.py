@@ -46,6 +46,11 @@ class CompositeLoss(nn.Module):
             self.terms[key] = LOSSES.build(name, **kwargs)
             self.weights[key] = weight
 
+    @property
+    def aux_keys(self) -> frozenset[str]:
+        """Deformer aux outputs the built terms read (a term with weight 0 is not built, so it asks for nothing)."""
+        return frozenset(k for term in self.terms.values() for k in getattr(term, "aux_keys", ()))
+
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CompositeLoss:
         """Build from a loss group config (`{terms: {...}}`)."""
@@ -65,11 +70,6 @@ class CompositeLoss(nn.Module):
             total = total + self.weights[key] * value
             values[key] = value.detach()
         return total, values
-
-    def uses(self, name: str) -> bool:
-        """Whether a term of registered loss `name` is built (weight != 0), e.g. so that the deformer can skip the
-        six-point weight lookups behind `weight_std` when nothing reads them."""
-        return any(getattr(term, "registry_name", None) == name for term in self.terms.values())
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={w:g}" for k, w in self.weights.items()) or "(no terms)"

@@ -150,16 +150,23 @@ class ZjuWriter:
             os.replace(tmp, dst)
         self._write_masks_and_body(frame, np.asarray(masks), params, vertices)
 
-    def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
-                              vertices: np.ndarray | None) -> None:  # fmt: skip
+    def write_masks(self, frame: int, masks: np.ndarray, mask_dir: str) -> None:
+        """Masks [C, H, W] (foreground non-zero) of one frame into `mask_dir` (e.g. a second, parser-made set in
+        mask_cihp/ next to mask/, as ZJU-MoCap ships both)."""
         import cv2
 
+        if mask_dir not in MASK_DIRS:
+            raise ValueError(f"mask_dir must be one of {MASK_DIRS}, got '{mask_dir}'")
         for v in range(self.num_cameras):
-            mpath = self.root / self.mask_dir / mask_relpath(self.image_path(frame, v))
+            mpath = self.root / mask_dir / mask_relpath(self.image_path(frame, v))
             mpath.parent.mkdir(parents=True, exist_ok=True)
-            m = (masks[v] != 0).astype(np.uint8) * np.uint8(self.mask_value)
+            m = (np.asarray(masks[v]) != 0).astype(np.uint8) * np.uint8(self.mask_value)
             if not cv2.imwrite(str(mpath), m):
                 raise OSError(f"could not write mask {mpath}")
+
+    def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
+                              vertices: np.ndarray | None) -> None:  # fmt: skip
+        self.write_masks(frame, masks, self.mask_dir)
         n = self.file_number(frame)
         if params is not None:
             save_pickled_dict(self.root / "params" / f"{n}.npy", normalize_params(params, f"frame {frame}"))
