@@ -11,7 +11,7 @@ from scipy.ndimage import correlate1d
 
 from framework.model.losses import CompositeLoss
 from framework.plugins import load_plugins
-from framework.registry import LOSSES, UnknownComponentError
+from framework.registry import LOSSES
 from framework.types import Cameras, FrameBatch, RenderOutput
 
 load_plugins()
