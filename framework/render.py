@@ -26,9 +26,10 @@ def load_motion(module, dm, motion: str) -> tuple[torch.Tensor, torch.Tensor | N
         roots = torch.as_tensor(data["roots"], dtype=torch.float32) if path.suffix == ".npz" and "roots" in data \
             else None  # fmt: skip
         body = module.avatar.body
-        if body is not None and (poses.ndim != 3 or poses.shape[1:] != (body.num_joints, 3)):
+        joints = None if body is None else body.num_input_joints
+        if body is not None and (poses.ndim != 3 or poses.shape[1:] != (joints, 3)):
             raise SplatrigError(f"motion={motion}: poses have shape {tuple(poses.shape)}, expected "
-                                f"[F, {body.num_joints}, 3] for body '{module.cfg['body']['name']}'.")  # fmt: skip
+                                f"[F, {joints}, 3] for body '{module.cfg['body']['name']}'.")  # fmt: skip
         return poses, roots, [-1] * poses.shape[0]
     dataset = dm.split(motion)
     all_poses = dataset.poses()

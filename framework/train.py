@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 # torch's OpenMP threads spin-wait by default; on a busy 2-core machine that starves the other thread (measured 3-10x
 # slower steps). Must be set before torch is imported; an explicit user setting wins.
@@ -57,6 +58,24 @@ def quiet_libraries() -> None:
     warnings.filterwarnings("ignore", message=".*ModelCheckpoint with manual optimization.*")
 
 
+def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians: int) -> None:
+    """Training cost for comparisons (tools/scene_adaptive.py): wall time of the fit loop (data preparation and the
+    final evaluation excluded), peak resident memory of the process and, on CUDA, peak allocated device memory."""
+    import json
+    import resource
+
+    import torch
+
+    stats = {
+        "fit_seconds": round(fit_seconds, 2),
+        "steps": int(steps),
+        "num_gaussians": int(num_gaussians),
+        "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # Linux: KiB
+        "cuda_peak_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1) if torch.cuda.is_available() else None,
+    }
+    path.write_text(json.dumps(stats, indent=1))
+
+
 def run(cfg: DictConfig) -> float | None:
     import lightning as L
     import torch
@@ -69,18 +88,16 @@ def run(cfg: DictConfig) -> float | None:
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
+    from framework.scene.setup import command_line_overrides, prepare_scene
 
     load_plugins()
     quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     torch.set_float32_matmul_precision("high")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-
-    container: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
 
     def build_split(split: str):
         return build_component("dataset", cfg.data, group="data", split=split)
@@ -93,6 +110,12 @@ def run(cfg: DictConfig) -> float | None:
         seed=int(cfg.seed),
     )
     train_set = dm.train_set
+    # the scene profile and `+scene=auto` may change the config, so it is resolved and saved after them
+    scene = prepare_scene(cfg, train_set, command_line_overrides(), progress=bool(cfg.callbacks.progress_bar))
+    (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    if scene.profile is not None or scene.frozen_pose:
+        (out_dir / "scene.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(scene.summary())))
+    container: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     poses = train_set.poses()
     data_info = {
         "bounds": train_set.bounds.tolist(),
@@ -100,9 +123,13 @@ def run(cfg: DictConfig) -> float | None:
         "body_name": train_set.body_name,
         "num_joints": None if poses is None else int(poses.shape[1]),
     }
+    if scene.frozen_pose:
+        data_info["frozen_pose"] = scene.frozen_pose
     module = SplatModule(container, data_info)
 
     logger = TensorBoardLogger(save_dir=str(out_dir), name="tb", version="") if cfg.logger.name else None
+    if logger is not None:
+        scene.log(logger.experiment)
     ckpt_dir = out_dir / "checkpoints"
     callbacks = [
         ModelCheckpoint(
@@ -148,7 +175,10 @@ def run(cfg: DictConfig) -> float | None:
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
                             f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
+    fit_started = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    write_train_stats(out_dir / "train_stats.json", time.perf_counter() - fit_started, trainer.global_step,
+                      module.avatar.gaussians.num)  # fmt: skip
 
     if module.bake_weights():
         trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)

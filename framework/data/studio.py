@@ -7,6 +7,8 @@ What it makes (deterministic for the settings; cached by a hash of them, so a se
   1.3 m, all looking at the body's centre (OpenCV K/R/T, D = 0), like ZJU-MoCap's capture dome.
 - Motion (`framework.data.motions`): the anny walk cycle, arm raises, squats and kicks for training, and a held-out
   turn-and-reach motion for novel-pose evaluation; each frame's pose is stored with the body-model name.
+  `motion=idle` is a near-static capture (a slight nod and arm sway), `motion=arms` moves only the arms.
+- Look (`LOOKS`): `default` is matte cloth; `glossy` adds a view-dependent highlight and deeper pose-dependent folds.
 - Appearance (`framework.data.appearance`): striped, printed and seamed clothing as a solid texture on the rest-pose
   surface, wrinkle shading that follows joint flexion, and self-shadows from a fixed light (Embree shadow rays).
 - Ground truth by ray casting the linear-blend-skinned mesh (`framework.data.raycast`): images, masks, posed
@@ -25,7 +27,7 @@ import multiprocessing as mp
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +36,13 @@ from framework.data import raycast
 
 STUDIO_VERSION = 2
 LIGHT = raycast.Shading(direction=(0.45, -0.55, 0.7), ambient=0.32, diffuse=0.78, shadows=True)
+#: looks (`StudioSettings.look`): shading plus the strength of the pose-dependent wrinkle shading (fine bands, broad
+#: fold shade). `default` is matte (Lambertian) cloth; `glossy` adds a broad white highlight that moves with the
+#: viewer (view-dependent colour) and deeper folds (stronger pose-dependent shading).
+LOOKS: dict[str, tuple[raycast.Shading, float, float]] = {
+    "default": (LIGHT, 0.55, 0.35),
+    "glossy": (replace(LIGHT, specular=0.45, shininess=12.0), 0.8, 0.55),
+}
 
 
 @dataclass(frozen=True)
@@ -49,9 +58,23 @@ class StudioSettings:
     fov_deg: float = 45.0
     image_ext: str = ".jpg"
     jpeg_quality: int = 95
+    motion: str = "default"  # a program of framework.data.motions.PROGRAMS: default | idle | arms
+    look: str = "default"  # a key of LOOKS: default (matte) | glossy
+
+    def __post_init__(self) -> None:
+        from framework.data.motions import PROGRAMS
+
+        if self.motion not in PROGRAMS:
+            raise ValueError(f"studio: motion '{self.motion}' is not one of {sorted(PROGRAMS)}.")
+        if self.look not in LOOKS:
+            raise ValueError(f"studio: look '{self.look}' is not one of {sorted(LOOKS)}.")
 
     def key(self) -> str:
-        blob = json.dumps({"version": STUDIO_VERSION, **asdict(self)}, sort_keys=True)
+        fields = asdict(self)
+        for name in ("motion", "look"):  # added later: left out at their defaults so existing caches stay valid
+            if fields[name] == "default":
+                fields.pop(name)
+        blob = json.dumps({"version": STUDIO_VERSION, **fields}, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
@@ -108,7 +131,7 @@ def _render_frame(f: int) -> int:
     normals = raycast.vertex_normals(verts, faces)
     imgs, masks = [], []
     for cam in s["cameras"]:
-        r = raycast.render(verts, faces, cam, color_fn=color, shading=LIGHT, normals=normals,
+        r = raycast.render(verts, faces, cam, color_fn=color, shading=s["shading"], normals=normals,
                            supersample=s["supersample"], caster=caster)  # fmt: skip
         imgs.append(r.rgb)
         masks.append(r.mask)
@@ -124,7 +147,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     from tqdm import tqdm
 
     from framework.data.appearance import Appearance
-    from framework.data.motions import Rig, axis_angle_to_matrix, build_sequence
+    from framework.data.motions import PROGRAMS, Rig, axis_angle_to_matrix, build_sequence
     from framework.data.zju_format import ZjuWriter, zju_camera_names
     from framework.paths import data_dir
 
@@ -144,7 +167,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     t0 = time.perf_counter()
     body = build_body(settings.body, settings.skeleton)
     rig = Rig.from_body(body)
-    seq = build_sequence(rig, settings.frames, seed=settings.seed)
+    seq = build_sequence(rig, settings.frames, seed=settings.seed, program=PROGRAMS[settings.motion])
+    shading, wrinkle_strength, broad_strength = LOOKS[settings.look]
     F = settings.frames
     with torch.no_grad():
         local = body.posed_vertices(torch.as_tensor(seq.poses)).double().numpy()  # [F, V, 3]
@@ -154,7 +178,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     Th[:, 2] = -rotated[:, :, 2].min(1)  # stand on the floor
     posed = (rotated + Th[:, None]).astype(np.float32)  # [F, V, 3]
     faces = body.faces.cpu().numpy().astype(np.int64)
-    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed)
+    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed,
+                     wrinkle_strength=wrinkle_strength, broad_strength=broad_strength)  # fmt: skip
     wrinkles = np.stack([app.wrinkle_multiplier(p) for p in seq.poses])  # [F, V]
     rest_h = float(body.rest_vertices[:, 2].max() - body.rest_vertices[:, 2].min())
     target = np.array([0.0, 0.0, 0.55 * rest_h])
@@ -173,7 +198,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     writer.write_cameras(K, None, R, T)
     state = {"posed": posed, "faces": faces, "appearance": app, "wrinkles": wrinkles, "cameras": cams,
              "camera_names": names, "params": params, "root": str(root), "supersample": settings.supersample,
-             "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality}  # fmt: skip
+             "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality, "shading": shading}  # fmt: skip
     bar = tqdm(total=F, desc=f"studio {settings.resolution}px x {settings.views} views", unit="frame",
                disable=not progress)  # fmt: skip
     if workers > 1 and F > 1:
@@ -197,7 +222,13 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
         "segments": seq.segments,
         "train_frames": seq.frames("train"),
         "novel_pose_frames": seq.frames("novel_pose"),
-        "light": {"direction": list(LIGHT.direction), "ambient": LIGHT.ambient, "diffuse": LIGHT.diffuse},
+        "light": {
+            "direction": list(shading.direction),
+            "ambient": shading.ambient,
+            "diffuse": shading.diffuse,
+            "specular": shading.specular,
+            "shininess": shading.shininess,
+        },
         "render_seconds": round(time.perf_counter() - t0, 2),
     }
     meta_path.write_text(json.dumps(meta, indent=1))
@@ -227,6 +258,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--supersample", type=int, default=d.supersample, help="s x s rays per pixel (anti-aliasing)")
     ap.add_argument("--radius", type=float, default=d.radius, help="camera ring radius in metres (default 3)")
     ap.add_argument("--image-ext", default=d.image_ext, choices=(".jpg", ".png"), help="image format (default .jpg)")
+    ap.add_argument("--motion", default=d.motion, help="motion program: default | idle (near-static) | arms")
+    ap.add_argument("--look", default=d.look, choices=sorted(LOOKS), help="default (matte cloth) | glossy")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="render processes (default 2)")
     ap.add_argument("--force", action="store_true", help="re-render even if the sequence exists")
     a = ap.parse_args(argv)
@@ -240,6 +273,8 @@ def main(argv: list[str] | None = None) -> None:
         supersample=a.supersample,
         radius=a.radius,
         image_ext=a.image_ext,
+        motion=a.motion,
+        look=a.look,
     )
     t = time.perf_counter()
     root = generate(s, a.out, workers=a.workers, force=a.force)

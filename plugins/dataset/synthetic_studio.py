@@ -38,6 +38,8 @@ class SyntheticStudioDataset(ZjuMocapDataset):
         body: str = "anny",
         skeleton: str = "reduced",
         supersample: int = 1,
+        motion: str = "default",
+        look: str = "default",
         workers: int = 2,
         test_view_every: int = 4,
         test_view_offset: int = 2,
@@ -47,7 +49,8 @@ class SyntheticStudioDataset(ZjuMocapDataset):
         from framework.data.studio import StudioSettings, generate
 
         settings = StudioSettings(resolution=int(resolution), views=int(views), frames=int(frames), seed=int(seed),
-                                  body=str(body), skeleton=str(skeleton), supersample=int(supersample))  # fmt: skip
+                                  body=str(body), skeleton=str(skeleton), supersample=int(supersample),
+                                  motion=str(motion), look=str(look))  # fmt: skip
         path = generate(settings, root, workers=int(workers), progress=True)
         meta = json.loads((path / "studio.json").read_text())
         if views < 2:
