@@ -188,6 +188,8 @@ class SplatModule(L.LightningModule):
         deformer = self.avatar.deformer
         if not hasattr(deformer, "bake") or self.avatar.body is None:
             return False
+        if "skin_weights" in self.avatar.gaussians.params:
+            return True  # already baked (a compact model has no F_dw left to bake again)
         weights = deformer.bake(self.avatar.gaussians.gaussians()).detach()
         self.avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
         return True

@@ -58,7 +58,8 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     """The choices a profile supports (see the module docstring); `root_joint` is never frozen."""
     t = thresholds
     still = [n for n in profile.still_joints if n != root_joint]
-    ranges = ", ".join(f"{n} {profile.joints[n]:.1f}°" for n in still) or "every joint moves"
+    largest = max((profile.joints[n] for n in still), default=0.0)
+    ranges = f"{len(still)} joints with a rotation range <= {largest:.1f}°" if still else "every joint moves"
     sh_levels = [float(x) for x in t["sh_view_dependence"]]
     degree = sum(profile.view_dependence > x for x in sh_levels)
     corrector_need = profile.pose_dependence >= float(t["corrector_pose_dependence"])
@@ -126,7 +127,7 @@ def _set_by_hand(choice: Choice, user_keys: set[str]) -> bool:
     return False
 
 
-def _group_option(group: str, option: str, current: dict[str, Any]) -> dict[str, Any]:
+def group_option(group: str, option: str, current: dict[str, Any]) -> dict[str, Any]:
     """The YAML of conf/<group>/<option>.yaml, with the values of keys it shares with the current node kept."""
     node = OmegaConf.to_container(OmegaConf.load(str(resources.files("framework.conf") / group / f"{option}.yaml")))
     assert isinstance(node, dict)
@@ -149,7 +150,7 @@ def apply_choices(cfg: DictConfig, choices: list[Choice], user_keys: set[str]) -
                     continue
                 if choice.key == "deformer" and current.get("name") != "lbs_residual":
                     continue  # only the residual deformer has an F_dw to switch off
-                cfg[choice.key] = _group_option(choice.key, str(choice.value), current)
+                cfg[choice.key] = group_option(choice.key, str(choice.value), current)
             else:
                 OmegaConf.update(cfg, choice.key, choice.value, merge=False, force_add=True)
         choice.applied = True

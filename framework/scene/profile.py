@@ -35,7 +35,7 @@ import torch
 
 from framework.errors import SplatrigError
 
-PROFILE_VERSION = 1
+PROFILE_VERSION = 2
 MIN_COS = 0.3  # triangles seen at a more grazing angle than ~73 degrees are left out of the colour statistics
 INTERIOR_PX = 1  # pixels closer than this (or than the low-pass reach) to a silhouette edge are left out
 DEPTH_EDGE_M = 0.05  # ... and so are pixels near a depth step larger than this (an occlusion edge inside the body)
@@ -143,51 +143,68 @@ def nearest_pose_frames(poses: torch.Tensor, roots: torch.Tensor | None, frames:
 
 
 # ------------------------------------------------------------------------------------------------- appearance
-@dataclass
-class _FrameColours:
-    sums: np.ndarray  # [V, T, 3] per view, per triangle colour sums
-    counts: np.ndarray  # [V, T] pixels per view and triangle
-
-    def view_means(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per view and triangle mean colour [V, T, 3] and whether it was seen [V, T]."""
-        seen = self.counts > 0
-        return self.sums / np.maximum(self.counts, 1)[..., None], seen
-
-    def averaged(self) -> tuple[np.ndarray, np.ndarray]:
-        """View-averaged colour per triangle [T, 3] (each seeing view counts once) and seen [T]."""
-        means, seen = self.view_means()
-        n = seen.sum(0)
-        return (means * seen[..., None]).sum(0) / np.maximum(n, 1)[:, None], n > 0
+def _means_by(keys: np.ndarray, groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean of `values` [P, 3] per (key, group) pair -> (keys [U], groups [U], means [U, 3])."""
+    num_groups = int(groups.max()) + 1 if groups.size else 1
+    combo, inverse = np.unique(keys * num_groups + groups, return_inverse=True)
+    counts = np.bincount(inverse)
+    sums = np.stack([np.bincount(inverse, weights=values[:, c]) for c in range(3)], axis=1)
+    return combo // num_groups, combo % num_groups, sums / counts[:, None]
 
 
-def _unbiased_var(values: np.ndarray, seen: np.ndarray) -> tuple[float, int]:
-    """Sum over triangles and channels of the unbiased variance across axis 0 (where seen, >= 2 samples) and how many
-    (triangle, channel) terms it holds. values [S, T, 3], seen [S, T]."""
-    n = seen.sum(0)  # [T]
-    ok = n >= 2
-    if not ok.any():
+def _spread(keys: np.ndarray, groups: np.ndarray, values: np.ndarray) -> tuple[float, int]:
+    """How much a surface patch's colour differs between groups (views, or frames): the unbiased variance across
+    groups of each patch's per-group mean, summed over patches seen in >= 2 groups and channels, and the number of
+    (patch, channel) terms in that sum."""
+    if keys.size == 0:
         return 0.0, 0
-    w = seen[:, ok, None].astype(np.float64)
-    v = values[:, ok].astype(np.float64)
-    mean = (v * w).sum(0) / n[ok, None]
-    var = (((v - mean) ** 2) * w).sum(0) / (n[ok, None] - 1)  # [T', 3]
-    return float(var.sum()), int(var.size)
+    k, _, means = _means_by(keys, groups, values)
+    patches, inverse = np.unique(k, return_inverse=True)
+    n = np.bincount(inverse)
+    centre = np.stack([np.bincount(inverse, weights=means[:, c]) for c in range(3)], axis=1) / n[:, None]
+    sq = np.stack([np.bincount(inverse, weights=(means[:, c] - centre[inverse, c]) ** 2) for c in range(3)], axis=1)
+    ok = n >= 2
+    return float((sq[ok] / (n[ok, None] - 1)).sum()), int(3 * ok.sum())
+
+
+@dataclass
+class _Samples:
+    """Valid pixels of one frame: the surface patch each shows, the view, the low-passed colour."""
+
+    keys: np.ndarray  # [P] int64 patch ids (a voxel of the rest-pose surface)
+    views: np.ndarray  # [P]
+    colours: np.ndarray  # [P, 3]
+
+    def view_averaged(self) -> tuple[np.ndarray, np.ndarray]:
+        """(patch ids [U], colour [U, 3]): each patch's mean over the views that see it, every view counted once."""
+        k, _, means = _means_by(self.keys, self.views, self.colours)
+        patches, inverse = np.unique(k, return_inverse=True)
+        n = np.bincount(inverse)
+        return patches, np.stack([np.bincount(inverse, weights=means[:, c]) for c in range(3)], axis=1) / n[:, None]
 
 
 class _Sampler:
-    """Ray-casts the stored posed mesh from each training camera and bins low-passed pixel colours by triangle."""
+    """Ray-casts the stored posed mesh from each training camera; every valid pixel gets the rest-pose surface patch it
+    shows (patches one pixel footprint wide, so two views compare the same few square centimetres of cloth)."""
 
-    def __init__(self, dataset, faces: np.ndarray, blur_px: float) -> None:
+    def __init__(self, dataset, body, blur_px: float) -> None:
         self.dataset = dataset
-        self.faces = faces
+        self.faces = body.faces.cpu().numpy().astype(np.int64)
+        self.rest = body.rest_vertices.detach().cpu().double().numpy()  # [V, 3]
         self.blur_px = blur_px
         self.views = list(dataset.views)
         self.index = {dataset.sample(i): i for i in range(len(dataset))}  # (frame, view) -> item
         self.silhouette: dict[int, list[float]] = {v: [] for v in self.views}
         self.offset_px = 0.0
         self.boundary_px = 0.0
+        self.patch_m: float | None = None
 
-    def frame(self, f: int, with_silhouettes: bool) -> _FrameColours:
+    def _patch_keys(self, fid: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        points = np.einsum("nk,nkc->nc", bary.astype(np.float64), self.rest[self.faces[fid]])  # [P, 3] rest pose
+        cell = np.floor(points / self.patch_m).astype(np.int64) + (1 << 20)
+        return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+
+    def frame(self, f: int, with_silhouettes: bool) -> _Samples:
         import cv2
 
         from framework.data import raycast
@@ -198,17 +215,17 @@ class _Sampler:
         tri = verts[self.faces]
         normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)  # [T, 3]
-        T = len(self.faces)
-        sums = np.zeros((len(self.views), T, 3))
-        counts = np.zeros((len(self.views), T))
-        for vi, view in enumerate(self.views):
+        keys, views, colours = [], [], []
+        for view in self.views:
             item = self.dataset[self.index[(f, view)]]
             cams = item.cameras
             cam = raycast.Camera(cams.K[0].double().numpy(), cams.world_to_cam[0].double().numpy(), cams.width,
                                  cams.height)  # fmt: skip
             origins, dirs = raycast.camera_rays(cam)
-            fid, _, depth = caster.intersect(origins, dirs)
+            fid, bary, depth = caster.intersect(origins, dirs)
             H, W = cams.height, cams.width
+            if self.patch_m is None and (fid >= 0).any():  # one pixel's footprint on the subject
+                self.patch_m = float(np.median(depth[fid >= 0])) / float(cam.K[0, 0])
             mask = item.mask[0].numpy()  # [H, W] coverage
             mesh = (fid >= 0).reshape(H, W)
             fg = mask >= 0.5
@@ -229,12 +246,10 @@ class _Sampler:
             d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
             cos = np.abs(np.einsum("nc,nc->n", normals[np.maximum(fid, 0)], d))
             ok = interior.ravel() & (cos > MIN_COS) & (fid >= 0)
-            ids = fid[ok]
-            colours = image.reshape(-1, 3)[ok]
-            counts[vi] = np.bincount(ids, minlength=T)
-            for c in range(3):
-                sums[vi, :, c] = np.bincount(ids, weights=colours[:, c], minlength=T)
-        return _FrameColours(sums, counts)
+            keys.append(self._patch_keys(fid[ok], bary[ok]))
+            views.append(np.full(int(ok.sum()), view, np.int64))
+            colours.append(image.reshape(-1, 3)[ok].astype(np.float64))
+        return _Samples(np.concatenate(keys), np.concatenate(views), np.concatenate(colours))
 
 
 # ------------------------------------------------------------------------------------------------- profile
@@ -297,27 +312,28 @@ def profile_dataset(dataset, body, max_frames: int = 12, blur_px: float = 1.0, m
     sampled = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, take).round().astype(int)]
     sampled = list(dict.fromkeys(sampled))
     partners = nearest_pose_frames(poses, roots, sampled, frames) if len(frames) > 1 else []
-    sampler = _Sampler(dataset, body.faces.cpu().numpy().astype(np.int64), blur_px)
+    sampler = _Sampler(dataset, body, blur_px)
     view_var, view_n = 0.0, 0
-    averaged, seen = [], []
+    pose_keys, pose_frames, pose_colours = [], [], []
     floor_var, floor_n = 0.0, 0
     bar = tqdm(total=len(sampled) + len(partners), desc="scene profile", unit="frame", disable=not progress)
     for i, f in enumerate(sampled):
-        colours = sampler.frame(f, with_silhouettes=True)
+        samples = sampler.frame(f, with_silhouettes=True)
         bar.update(1)
-        means, vis = colours.view_means()
-        v, n = _unbiased_var(means, vis)
+        v, n = _spread(samples.keys, samples.views, samples.colours)
         view_var, view_n = view_var + v, view_n + n
-        avg, ok = colours.averaged()
-        averaged.append(avg)
-        seen.append(ok)
+        keys, colours = samples.view_averaged()
+        pose_keys.append(keys)
+        pose_frames.append(np.full(len(keys), i, np.int64))
+        pose_colours.append(colours)
         if partners:
-            pavg, pok = sampler.frame(partners[i], with_silhouettes=False).averaged()
+            pkeys, pcolours = sampler.frame(partners[i], with_silhouettes=False).view_averaged()
             bar.update(1)
-            v, n = _unbiased_var(np.stack([avg, pavg]), np.stack([ok, pok]))
+            both = np.concatenate([np.zeros(len(keys), np.int64), np.ones(len(pkeys), np.int64)])
+            v, n = _spread(np.concatenate([keys, pkeys]), both, np.concatenate([colours, pcolours]))
             floor_var, floor_n = floor_var + v, floor_n + n
     bar.close()
-    total_var, total_n = _unbiased_var(np.stack(averaged), np.stack(seen))
+    total_var, total_n = _spread(np.concatenate(pose_keys), np.concatenate(pose_frames), np.concatenate(pose_colours))
     total = total_var / max(total_n, 1)
     floor = floor_var / max(floor_n, 1)
     per_view = {int(v): float(np.mean(a)) for v, a in sampler.silhouette.items() if a}
