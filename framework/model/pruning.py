@@ -72,7 +72,7 @@ def sh_band_rms(shN: Tensor) -> list[float]:
     degree = int(round(math.sqrt(shN.shape[1] + 1))) - 1
     for band in range(1, degree + 1):
         rows = shN[:, band * band - 1 : (band + 1) ** 2 - 1]  # [N, 2l + 1, 3]
-        per_gaussian = (rows.double() ** 2).sum(1) / (4 * math.pi)  # [N, 3] mean square over the sphere
+        per_gaussian = (rows.detach().double() ** 2).sum(1) / (4 * math.pi)  # [N, 3] mean square over the sphere
         out.append(float(per_gaussian.sqrt().mean()) if rows.shape[0] else 0.0)
     return out
 
