@@ -58,11 +58,37 @@ def quiet_libraries() -> None:
     warnings.filterwarnings("ignore", message=".*ModelCheckpoint with manual optimization.*")
 
 
+def reset_peak_memory() -> None:
+    """Start the peak-memory counters afresh, so the fit loop's peak is not the data preparation's (Linux: writing
+    5 to /proc/self/clear_refs resets the resident-set high-water mark VmHWM)."""
+    import torch
+
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+
+
+def _peak_rss_mib() -> float:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024  # kB
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB (whole process lifetime)
+
+
 def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians: int) -> None:
     """Training cost for comparisons (tools/scene_adaptive.py): wall time of the fit loop (data preparation and the
-    final evaluation excluded), peak resident memory of the process and, on CUDA, peak allocated device memory."""
+    final evaluation excluded), the peak resident memory since `reset_peak_memory` and, on CUDA, peak allocated
+    device memory."""
     import json
-    import resource
 
     import torch
 
@@ -70,7 +96,7 @@ def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians:
         "fit_seconds": round(fit_seconds, 2),
         "steps": int(steps),
         "num_gaussians": int(num_gaussians),
-        "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # Linux: KiB
+        "peak_rss_mib": round(_peak_rss_mib(), 1),
         "cuda_peak_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1) if torch.cuda.is_available() else None,
     }
     path.write_text(json.dumps(stats, indent=1))
@@ -175,6 +201,7 @@ def run(cfg: DictConfig) -> float | None:
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
                             f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
+    reset_peak_memory()
     fit_started = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
     write_train_stats(out_dir / "train_stats.json", time.perf_counter() - fit_started, trainer.global_step,

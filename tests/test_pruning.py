@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from framework.cameras import orbit_cameras
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.gaussian_init import from_body_surface
 from framework.model.pruning import (
@@ -59,11 +60,10 @@ def test_max_blend_weights_match_the_float64_reference():
 
 
 def _cameras() -> Cameras:
-    front = torch.tensor([[1.0, 0, 0, 0], [0, 0, -1, 0.3], [0, 1, 0, 3.0], [0, 0, 0, 1]])
-    side = torch.tensor([[0.0, 1, 0, 0], [0, 0, -1, 0.3], [-1, 0, 0, 3.0], [0, 0, 0, 1]])
-    f = SIZE * 1.1
-    K = torch.tensor([[f, 0, SIZE / 2], [0, f, SIZE / 2], [0, 0, 1.0]]).expand(2, 3, 3)
-    return Cameras(K, torch.stack([front, side]), SIZE, SIZE)
+    """Two views of the body, 3 m away, a quarter turn apart."""
+    return orbit_cameras(torch.tensor([0.0, 0.0, 0.3]), 3.0, 0.0, 4, SIZE, SIZE, fov_deg=50.0, turns=1.0).index(
+        slice(0, 2)
+    )
 
 
 def _batches(body, n: int = 3) -> list[FrameBatch]:

@@ -67,7 +67,7 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
     cap = int(round(float(t["max_gaussians_factor"]) * num))
     return [
-        Choice("scene.frozen_joints", still, f"rotation range {ranges}", f"<= {profile.moving_deg:g}°: frozen"),
+        Choice("scene.frozen_joints", still, ranges, f"<= {profile.moving_deg:g}°: frozen"),
         Choice(
             "gaussians.sh_degree",
             degree,

@@ -284,7 +284,13 @@ def _check_profilable(dataset, body) -> None:
             f"data={what}: the scene profile needs a body dataset with per-frame poses and posed vertices "
             f"(e.g. data=synthetic_studio or data=zju_mocap); this dataset has none. Profile a body capture instead."
         )
-    verts = dataset.vertices(dataset.frame_ids[0])
+    try:
+        verts = dataset.vertices(dataset.frame_ids[0])
+    except (OSError, ValueError, KeyError) as exc:
+        raise ProfileError(
+            f"data={what}: the scene profile needs the posed body vertices of every frame (a vertices/ folder in the "
+            f"ZJU-MoCap layout, as EasyMocap writes it); reading frame {dataset.frame_ids[0]} failed: {exc}"
+        ) from None
     joints = dataset.poses().shape[1]
     if body is None or verts.shape[0] != body.rest_vertices.shape[0] or joints != body.num_joints:
         found = None if body is None else body.rest_vertices.shape[0]
