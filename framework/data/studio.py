@@ -7,6 +7,8 @@ What it makes (deterministic for the settings; cached by a hash of them, so a se
   1.3 m, all looking at the body's centre (OpenCV K/R/T, D = 0), like ZJU-MoCap's capture dome.
 - Motion (`framework.data.motions`): the anny walk cycle, arm raises, squats and kicks for training, and a held-out
   turn-and-reach motion for novel-pose evaluation; each frame's pose is stored with the body-model name.
+  `motion=idle` is a near-static capture (a slight nod and arm sway), `motion=arms` moves only the arms.
+- Look (`LOOKS`): `default` is matte cloth; `glossy` adds a view-dependent highlight and deeper pose-dependent folds.
 - Appearance (`framework.data.appearance`): striped, printed and seamed clothing as a solid texture on the rest-pose
   surface, wrinkle shading that follows joint flexion, and self-shadows from a fixed light (Embree shadow rays).
 - Ground truth by ray casting the linear-blend-skinned mesh (`framework.data.raycast`): images, masks, posed
@@ -37,7 +39,7 @@ import multiprocessing as mp
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +52,13 @@ LIGHT = raycast.Shading(direction=(0.45, -0.55, 0.7), ambient=0.32, diffuse=0.78
 GARMENTS = ("none", "skirt")
 IMPERFECTION_DEFAULTS = {"pose_noise_deg": 0.0, "root_noise_m": 0.0, "mask_error_px": 0.0, "garment": "none",
                          "garment_lag": 0.5, "subject_height_fraction": None}  # fmt: skip
+#: looks (`StudioSettings.look`): shading plus the strength of the pose-dependent wrinkle shading (fine bands, broad
+#: fold shade). `default` is matte (Lambertian) cloth; `glossy` adds a broad white highlight that moves with the
+#: viewer (view-dependent colour) and deeper folds (stronger pose-dependent shading).
+LOOKS: dict[str, tuple[raycast.Shading, float, float]] = {
+    "default": (LIGHT, 0.55, 0.35),
+    "glossy": (replace(LIGHT, specular=0.45, shininess=12.0), 0.8, 0.55),
+}
 
 
 @dataclass(frozen=True)
@@ -72,8 +81,12 @@ class StudioSettings:
     garment: str = "none"  # "none" | "skirt"
     garment_lag: float = 0.5
     subject_height_fraction: float | None = None
+    motion: str = "default"  # a program of framework.data.motions.PROGRAMS: default | idle | arms
+    look: str = "default"  # a key of LOOKS: default (matte) | glossy
 
     def __post_init__(self) -> None:
+        from framework.data.motions import PROGRAMS
+
         if self.garment not in GARMENTS:
             raise ValueError(f"studio: garment must be one of {GARMENTS}, got '{self.garment}'.")
         if self.subject_height_fraction is not None and not 0.05 < self.subject_height_fraction <= 1.5:
@@ -84,12 +97,16 @@ class StudioSettings:
         for name in ("pose_noise_deg", "root_noise_m", "mask_error_px"):
             if getattr(self, name) < 0:
                 raise ValueError(f"studio: {name} must be >= 0, got {getattr(self, name)}.")
+        if self.motion not in PROGRAMS:
+            raise ValueError(f"studio: motion '{self.motion}' is not one of {sorted(PROGRAMS)}.")
+        if self.look not in LOOKS:
+            raise ValueError(f"studio: look '{self.look}' is not one of {sorted(LOOKS)}.")
 
     def key(self) -> str:
         """Hash of the settings; knobs left at their defaults are left out, so sequences rendered before a knob
         existed keep their key (and their cache)."""
         values = asdict(self)
-        for name, default in IMPERFECTION_DEFAULTS.items():
+        for name, default in {**IMPERFECTION_DEFAULTS, "motion": "default", "look": "default"}.items():
             if values[name] == default:
                 del values[name]
         blob = json.dumps({"version": STUDIO_VERSION, **values}, sort_keys=True)
@@ -175,7 +192,7 @@ def _render_frame(f: int) -> int:
     normals = raycast.vertex_normals(verts, faces)
     imgs, masks, parsed = [], [], []
     for v, cam in enumerate(s["cameras"]):
-        r = raycast.render(verts, faces, cam, color_fn=color, shading=LIGHT, normals=normals,
+        r = raycast.render(verts, faces, cam, color_fn=color, shading=s["shading"], normals=normals,
                            supersample=s["supersample"], caster=caster)  # fmt: skip
         imgs.append(r.rgb)
         masks.append(r.mask)
@@ -196,7 +213,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     from tqdm import tqdm
 
     from framework.data.appearance import Appearance
-    from framework.data.motions import Rig, axis_angle_to_matrix, build_sequence
+    from framework.data.motions import PROGRAMS, Rig, axis_angle_to_matrix, build_sequence
     from framework.data.zju.layout import zju_camera_names
     from framework.data.zju.writer import ZjuWriter
     from framework.paths import data_dir
@@ -217,7 +234,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     t0 = time.perf_counter()
     body = build_body(settings.body, settings.skeleton)
     rig = Rig.from_body(body)
-    seq = build_sequence(rig, settings.frames, seed=settings.seed)
+    seq = build_sequence(rig, settings.frames, seed=settings.seed, program=PROGRAMS[settings.motion])
+    shading, wrinkle_strength, broad_strength = LOOKS[settings.look]
     F = settings.frames
     with torch.no_grad():
         local = body.posed_vertices(torch.as_tensor(seq.poses)).double().numpy()  # [F, V, 3]
@@ -227,7 +245,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     Th[:, 2] = -rotated[:, :, 2].min(1)  # stand on the floor
     posed = (rotated + Th[:, None]).astype(np.float32)  # [F, V, 3]
     faces = body.faces.cpu().numpy().astype(np.int64)
-    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed)
+    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed,
+                     wrinkle_strength=wrinkle_strength, broad_strength=broad_strength)  # fmt: skip
     wrinkles = np.stack([app.wrinkle_multiplier(p) for p in seq.poses])  # [F, V]
     rest_h = float(body.rest_vertices[:, 2].max() - body.rest_vertices[:, 2].min())
     framed = settings.subject_height_fraction is not None
@@ -252,7 +271,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
              "camera_names": names, "params": params, "root": str(root), "supersample": settings.supersample,
              "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality, "fitted": fitted,
              "skirt": skirt, "skirt_posed": skirt_posed, "mask_error_px": settings.mask_error_px,
-             "seed": settings.seed}  # fmt: skip
+             "seed": settings.seed, "shading": shading}  # fmt: skip
     bar = tqdm(total=F, desc=f"studio {settings.resolution}px x {settings.views} views", unit="frame",
                disable=not progress)  # fmt: skip
     if workers > 1 and F > 1:
@@ -279,10 +298,16 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
         "segments": seq.segments,
         "train_frames": seq.frames("train"),
         "novel_pose_frames": seq.frames("novel_pose"),
-        "light": {"direction": list(LIGHT.direction), "ambient": LIGHT.ambient, "diffuse": LIGHT.diffuse},
         "camera_ring_radius": radius,
         "imperfections": {name: getattr(settings, name) for name in IMPERFECTION_DEFAULTS},
         "ground_truth": "ground_truth" if settings.has_ground_truth else None,
+        "light": {
+            "direction": list(shading.direction),
+            "ambient": shading.ambient,
+            "diffuse": shading.diffuse,
+            "specular": shading.specular,
+            "shininess": shading.shininess,
+        },
         "render_seconds": round(time.perf_counter() - t0, 2),
     }
     meta_path.write_text(json.dumps(meta, indent=1))
@@ -370,6 +395,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--garment", default="none", choices=GARMENTS, help="a loose garment (default none)")
     ap.add_argument("--subject-height-fraction", type=float, default=None,
                     help="frame the subject to this fraction of the image height (overrides --radius)")  # fmt: skip
+    ap.add_argument("--motion", default=d.motion, help="motion program: default | idle (near-static) | arms")
+    ap.add_argument("--look", default=d.look, choices=sorted(LOOKS), help="default (matte cloth) | glossy")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="render processes (default 2)")
     ap.add_argument("--force", action="store_true", help="re-render even if the sequence exists")
     a = ap.parse_args(argv)
@@ -388,6 +415,8 @@ def main(argv: list[str] | None = None) -> None:
         mask_error_px=a.mask_error_px,
         garment=a.garment,
         subject_height_fraction=a.subject_height_fraction,
+        motion=a.motion,
+        look=a.look,
     )
     t = time.perf_counter()
     root = generate(s, a.out, workers=a.workers, force=a.force)

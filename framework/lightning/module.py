@@ -43,6 +43,11 @@ class SplatModule(L.LightningModule):
                 f"{data_info['num_joints']}. Select the body the data was made with (dataset body: "
                 f"'{data_info.get('body_name')}'), e.g. `body={data_info.get('body_name')}`."
             )
+        frozen = list((cfg.get("scene") or {}).get("frozen_joints") or [])
+        if body is not None and frozen:  # joints still over the training frames leave the pose input and LBS sum
+            from framework.model.frozen_body import FrozenJointsBody
+
+            body = FrozenJointsBody(body, frozen, data_info.get("frozen_pose"))
         gaussians = self._initial_gaussians(body, bounds)
         corrector = build_component("corrector", cfg["corrector"])
         deformer = build_component("deformer", cfg["deformer"])
@@ -214,6 +219,8 @@ class SplatModule(L.LightningModule):
         deformer = self.avatar.deformer
         if not hasattr(deformer, "bake") or self.avatar.body is None:
             return False
+        if "skin_weights" in self.avatar.gaussians.params:
+            return True  # already baked (a compact model has no F_dw left to bake again)
         weights = deformer.bake(self.avatar.gaussians.gaussians()).detach()
         self.avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
         return True

@@ -141,7 +141,7 @@ class Avatar(nn.Module):
         """World-space skinning transforms [J, 4, 4] and the pose features [P] for the corrector."""
         if self.body is None or batch.pose is None:
             return None, None
-        pose = batch.pose[:1]
+        pose = self.body.input_pose(batch.pose[:1])
         joints = self.body.rest_joints.unsqueeze(0)
         if self.pose_refiner is not None:
             pose, joints = self.pose_refiner(batch.frame[:1], pose, self.body.rest_joints.unsqueeze(0))

@@ -39,6 +39,8 @@ class SyntheticStudioDataset(ZjuMocapDataset):
         body: str = "anny",
         skeleton: str = "reduced",
         supersample: int = 1,
+        motion: str = "default",
+        look: str = "default",
         workers: int = 2,
         test_view_every: int = 4,
         test_view_offset: int = 2,
@@ -59,7 +61,8 @@ class SyntheticStudioDataset(ZjuMocapDataset):
                                   mask_error_px=float(mask_error_px), garment=str(garment),
                                   garment_lag=float(garment_lag),
                                   subject_height_fraction=None if subject_height_fraction is None
-                                  else float(subject_height_fraction))  # fmt: skip
+                                  else float(subject_height_fraction),
+                                  motion=str(motion), look=str(look))  # fmt: skip
         path = generate(settings, root, workers=int(workers), progress=True)
         meta = json.loads((path / "studio.json").read_text())
         if views < 2:

@@ -128,6 +128,24 @@ def pair_alpha(
     return dx, dy, alpha
 
 
+def pair_transmittance(alpha: Tensor, pix: Tensor, num_pixels: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Pairs sorted by (pixel, depth) -> (alpha with terminated pairs zeroed [P], log(1 - that alpha) [P], T before
+    each pair [P], pairs per pixel [num_pixels]). The running sum of log(1 - alpha) is float64: a float32 sum over all
+    pairs would lose the digits. Early termination: a pair counts only while T after it stays > 1e-4; that is a prefix
+    of every pixel's segment (usually nearly all of it), so the rest is switched off rather than removed."""
+    log1m = torch.log1p(-alpha)
+    cs = torch.cumsum(log1m.double(), 0)
+    counts = torch.bincount(pix, minlength=num_pixels)
+    first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
+    excl = cs - log1m
+    base = excl.index_select(0, first).index_select(0, pix)  # running sum before each pixel's segment
+    keep = (cs - base) > LOG_T_MIN
+    alpha = torch.where(keep, alpha, 0.0)
+    log1m = torch.where(keep, log1m, 0.0)  # = log1p(-alpha) of the switched-off alpha
+    T = excl.sub_(base).to(alpha.dtype).exp_()  # transmittance before each pair
+    return alpha, log1m, T, counts
+
+
 def _rows(k: int, n: int, like: Tensor) -> Tensor:
     return torch.empty(k, n, dtype=like.dtype, device=like.device)
 
@@ -241,18 +259,7 @@ class _Composite(torch.autograd.Function):
         px, py = pixel_centres(num_pixels, width, dtype, dev)
         px, py = px.index_select(0, pix), py.index_select(0, pix)
         dx, dy, alpha = kernels.alpha(mx, my, ca, cb, cc, op, ent, px, py)  # [P]; alpha 0 = no contribution
-        log1m = torch.log1p(-alpha)
-        cs = torch.cumsum(log1m.double(), 0)  # float64: a float32 running sum over all pairs would lose the digits
-        counts = torch.bincount(pix, minlength=num_pixels)
-        first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
-        excl = cs - log1m
-        base = excl.index_select(0, first).index_select(0, pix)  # running sum before each pixel's segment
-        # Early termination: a pair counts only while T after it stays > 1e-4; that is a prefix of every pixel's
-        # segment (usually nearly all of it), so the rest is switched off rather than removed.
-        keep = (cs - base) > LOG_T_MIN
-        alpha = torch.where(keep, alpha, 0.0)
-        log1m = torch.where(keep, log1m, 0.0)  # = log1p(-alpha) of the switched-off alpha
-        T = excl.sub_(base).to(dtype).exp_()  # transmittance before each pair
+        alpha, log1m, T, counts = pair_transmittance(alpha, pix, num_pixels)
         pair_cols = torch.stack([colors[:, 0], colors[:, 1], colors[:, 2], depths]).index_select(1, ent)  # [4, P]
         acc = kernels.accumulate(pair_cols, counts, T, alpha, log1m)  # [num_pixels, 5]
         T_final = torch.exp(acc[:, 4])
@@ -403,3 +410,48 @@ class TorchRefRasterizer(Rasterizer):
             means2d=means2d,
             radii=proj.radii,
         )
+
+    @torch.no_grad()
+    def max_blend_weights(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        cameras: Cameras,
+        *,
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> Tensor:
+        """[N] the largest blending weight T * alpha each Gaussian reaches at any pixel of any camera (pruning).
+
+        The same pairs, alphas and early termination as `render`, with no colours, no autograd and a max in place of
+        the colour sums, so it is a separate pass that the training step never runs."""
+        C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
+        dtype, dev = means.dtype, means.device
+        out = torch.zeros(N, dtype=dtype, device=dev)
+        proj = project_gaussians(
+            means, quats, scales, opacities, cameras.K.to(dev, dtype), cameras.world_to_cam.to(dev, dtype), W, H,
+            near=near, far=far,
+        )  # fmt: skip
+        flat_valid = torch.nonzero(proj.valid.reshape(-1)).squeeze(1)
+        flat = flat_valid[torch.argsort(proj.depths.reshape(-1)[flat_valid], stable=True)]  # depth order
+        if flat.numel() == 0:
+            return out
+        cam = torch.div(flat, N, rounding_mode="floor")
+        gid = flat - cam * N
+        means2d = proj.means2d.reshape(-1, 2).index_select(0, flat)
+        conics = proj.conics.reshape(-1, 3).index_select(0, flat)
+        op = opacities.index_select(0, gid)
+        ent, pix = enumerate_pairs(means2d, conics, op, proj.half_extents.reshape(-1, 2).index_select(0, flat), cam,
+                                   W, H)  # fmt: skip
+        if pix.numel() == 0:
+            return out
+        pix, perm = torch.sort(pix, stable=True)
+        ent = ent.index_select(0, perm)
+        my = means2d[:, 1] + cam.to(dtype) * H
+        px, py = pixel_centres(C * H * W, W, dtype, dev)
+        _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, px.index_select(0, pix),
+                                 py.index_select(0, pix))  # fmt: skip
+        alpha, _, T, _ = pair_transmittance(alpha, pix, C * H * W)
+        return out.scatter_reduce_(0, gid.index_select(0, ent), T * alpha, reduce="amax")
