@@ -36,8 +36,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from framework.interfaces.rasterizer import ALPHA_MIN, BOX_MARGIN, FAR_PLANE, NEAR_PLANE, Rasterizer
+from framework.interfaces.rasterizer import FAR_PLANE, NEAR_PLANE, Rasterizer
 from framework.registry import register
+from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
 from framework.types import Cameras, RenderOutput
 
 log = logging.getLogger(__name__)
@@ -252,55 +253,20 @@ def build_pairs(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """(gauss_idx [P] into C*Np, pixel_idx [P] into C*H*W) of the pairs in the screen boxes that can reach
-    alpha >= 1/255, sorted by (camera, pixel, depth).
-
-    The alpha test here is a conservative prefilter (a 1e-3 margin on sigma): it only shortens the list, and the JAX
-    compositor applies the exact test, so float rounding here can never drop a contributing pair."""
+    """(gauss_idx [P] into C*Np, pixel_idx [P] into C*H*W) of the pairs that can reach alpha >= 1/255, sorted by
+    (camera, pixel, depth): the same pairs as torch_ref (framework.splat.pairs); the JAX compositor applies the exact
+    alpha test, so the enumeration's conservative margin only costs a few extra pairs."""
     C, Np = depths.shape
-    dev = means2d.device
-    flat_valid = torch.nonzero(radii.reshape(-1) > 0).squeeze(1)  # [M]
-    order = torch.argsort(depths.reshape(-1)[flat_valid], stable=True)
-    flat = flat_valid[order]  # visible (camera, Gaussian) entries in depth order
-    cam = torch.div(flat, Np, rounding_mode="floor")
-    m = means2d.reshape(-1, 2)[flat]  # [M, 2]
-    h = half.reshape(-1, 2)[flat]
-    lo = torch.ceil(m - h - BOX_MARGIN - 0.5)
-    hi = torch.floor(m + h + BOX_MARGIN - 0.5)
-    x0 = lo[:, 0].clamp(0, width).long()
-    y0 = lo[:, 1].clamp(0, height).long()
-    bw = (hi[:, 0].clamp(-1, width - 1).long() - x0 + 1).clamp_min(0)
-    bh = (hi[:, 1].clamp(-1, height - 1).long() - y0 + 1).clamp_min(0)
-    counts = bw * bh  # [M]
-    total = int(counts.sum())
-    M = len(flat)
-    if total >= 2**31 or C * height * width >= 2**31:
+    flat, cam, gid = depth_ordered_entries(radii > 0, depths)  # [M] visible entries in depth order
+    ent, pix = enumerate_pairs(means2d.reshape(-1, 2)[flat], conics.reshape(-1, 3)[flat], opacities[gid],
+                               half.reshape(-1, 2)[flat], cam, width, height)  # fmt: skip
+    if pix.shape[0] >= 2**31 or C * height * width >= 2**31:
         raise ValueError(
-            f"jax rasterizer: {total} (Gaussian, pixel) pairs for {C} cameras of {width}x{height} exceed the int32 "
-            "indices of the compositor; render fewer cameras per call or a smaller image."
+            f"jax rasterizer: {pix.shape[0]} (Gaussian, pixel) pairs for {C} cameras of {width}x{height} exceed the "
+            "int32 indices of the compositor; render fewer cameras per call or a smaller image."
         )
-    i32 = torch.int32  # per-pair integer work in int32: half the memory traffic of int64
-    ent = torch.repeat_interleave(torch.arange(M, device=dev, dtype=i32), counts, output_size=total)  # [P_box]
-    # one gather per table instead of one per quantity: per-entry offsets so that dx = ox - col_in_box
-    q = conics.reshape(-1, 3)[flat]
-    o = opacities[flat - cam * Np]
-    ftab = torch.stack(
-        [m[:, 0] - x0 - 0.5, m[:, 1] - y0 - 0.5, q[:, 0], q[:, 1], q[:, 2], torch.log(o / ALPHA_MIN) + 1e-3], dim=1
-    )  # [M, 6]
-    itab = torch.stack([torch.cumsum(counts, 0) - counts, bw, (cam * height + y0) * width + x0], dim=1).to(i32)
-    fp = ftab.index_select(0, ent)  # [P_box, 6]
-    ip = itab.index_select(0, ent)  # [P_box, 3]
-    local = torch.arange(total, device=dev, dtype=i32) - ip[:, 0]
-    row = torch.div(local, ip[:, 1], rounding_mode="floor")
-    col = local - row * ip[:, 1]
-    dx = fp[:, 0] - col
-    dy = fp[:, 1] - row
-    sigma = 0.5 * (fp[:, 2] * dx * dx + fp[:, 4] * dy * dy) + fp[:, 3] * dx * dy
-    sel = torch.nonzero(sigma <= fp[:, 5]).squeeze(1)
-    pix = (ip[:, 2] + row * width + col)[sel]
-    # pairs are in depth order within each pixel already; a stable sort by pixel keeps it
-    pix, perm = torch.sort(pix, stable=True)
-    return flat[ent[sel][perm].long()], pix
+    ent, pix = sort_pairs_by_pixel(ent, pix, C * height * width)
+    return flat[ent], pix
 
 
 def pad_pairs(gauss_idx: Tensor, pixel_idx: Tensor, num_pixels: int) -> tuple[Tensor, Tensor, Tensor]:

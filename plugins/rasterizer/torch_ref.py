@@ -27,7 +27,6 @@ from torch import Tensor
 from framework.interfaces.rasterizer import (
     ALPHA_MAX,
     ALPHA_MIN,
-    BOX_MARGIN,
     FAR_PLANE,
     LOG_T_MIN,
     NEAR_PLANE,
@@ -35,60 +34,10 @@ from framework.interfaces.rasterizer import (
     check_render_inputs,
 )
 from framework.registry import register
+from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
 from framework.splat.projection import project_gaussians
 from framework.splat.sh import eval_sh
 from framework.types import Cameras, RenderOutput
-
-
-def _to_index(x: Tensor, lo: int, hi: int) -> Tensor:
-    """Float pixel bounds (may be +-inf or NaN at the extremes) -> int64 clamped to [lo, hi]; NaN -> lo."""
-    return torch.nan_to_num(x, nan=float(lo), posinf=float(hi), neginf=float(lo)).clamp(lo, hi).long()
-
-
-def enumerate_pairs(
-    means2d: Tensor,  # [M, 2] (detached, unshifted)
-    conics: Tensor,  # [M, 3] (detached)
-    opacities: Tensor,  # [M] (detached, all >= 1/255)
-    half: Tensor,  # [M, 2] box half extents in pixels
-    cam: Tensor,  # [M] camera index of each entry
-    width: int,
-    height: int,
-) -> tuple[Tensor, Tensor]:
-    """Every (entry, pixel) pair whose pixel centre may have alpha >= 1/255 -> (entry [P], flat pixel [P]).
-
-    Rows come from the screen box; within a row the pixels come from the exact span of the ellipse
-    sigma <= ln(255 * opacity) (widened by BOX_MARGIN), so hardly any enumerated pair is wasted. Pairs come out
-    entry-major, so entries given in depth order give pairs in depth order.
-    """
-    dev = means2d.device
-    M = means2d.shape[0]
-    y0 = _to_index(torch.ceil(means2d[:, 1] - half[:, 1] - BOX_MARGIN - 0.5), 0, height)
-    y1 = _to_index(torch.floor(means2d[:, 1] + half[:, 1] + BOX_MARGIN - 0.5), -1, height - 1)
-    nrows = (y1 - y0 + 1).clamp_min(0)  # [M]
-    R = int(nrows.sum())
-    r_ent = torch.repeat_interleave(torch.arange(M, device=dev), nrows, output_size=R)  # [R]
-    r_y = (
-        y0.index_select(0, r_ent)
-        + torch.arange(R, device=dev)
-        - (torch.cumsum(nrows, 0) - nrows).index_select(0, r_ent)
-    )
-    dy = means2d[:, 1].index_select(0, r_ent) - (r_y.to(means2d.dtype) + 0.5)
-    a, b, c = (conics[:, i].index_select(0, r_ent) for i in range(3))
-    L = torch.log((opacities.index_select(0, r_ent) / ALPHA_MIN).clamp_min(1.0))
-    disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * L)  # sigma(dx) <= L is a quadratic in dx
-    sq = torch.sqrt(disc.clamp_min(0.0))
-    a_safe = a.clamp_min(torch.finfo(a.dtype).tiny)
-    mx = means2d[:, 0].index_select(0, r_ent)
-    x0 = _to_index(torch.ceil(mx - (-b * dy + sq) / a_safe - BOX_MARGIN - 0.5), 0, width)
-    x1 = _to_index(torch.floor(mx - (-b * dy - sq) / a_safe + BOX_MARGIN - 0.5), -1, width - 1)
-    n = torch.where(disc >= 0, (x1 - x0 + 1).clamp_min(0), torch.zeros_like(x0))  # [R]
-    P = int(n.sum())
-    p_row = torch.repeat_interleave(torch.arange(R, device=dev), n, output_size=P)  # [P]
-    row_base = (cam.index_select(0, r_ent) * height + r_y) * width + x0 - (torch.cumsum(n, 0) - n)  # [R]
-    pix = row_base.index_select(0, p_row) + torch.arange(P, device=dev)
-    ent = r_ent.index_select(0, p_row)
-    return ent, pix
-
 
 _pixel_centre_cache: dict[tuple[int, int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
 
@@ -321,14 +270,7 @@ def composite(
     num_pixels = num_cameras * height * width
     with torch.no_grad():
         ent, pix = enumerate_pairs(means2d.detach(), conics.detach(), opacities.detach(), half, cam, width, height)
-        # Stable: pairs were in depth order within each pixel. The CPU sort's cost follows the key width, so the keys
-        # are the narrowest integers that hold every pixel index (measured on 707k pairs: int16 8 ms, int32 18 ms,
-        # int64 38 ms); indexing stays int64 (int32 index tensors made the gathers slower).
-        shift = 2**15 if num_pixels <= 2**16 else 0
-        key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
-        keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)
-        pix = keys.long() + shift
-        ent = ent.index_select(0, perm)
+        ent, pix = sort_pairs_by_pixel(ent, pix, num_pixels)
     return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width, kernels)
 
 
@@ -369,7 +311,7 @@ class TorchRefRasterizer(Rasterizer):
             )  # fmt: skip
             half = means.dtype
             return RenderOutput(out.rgb.to(half), out.alpha.to(half), out.depth.to(half), out.means2d, out.radii)
-        C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
+        C, H, W = cameras.num, cameras.height, cameras.width
         dtype, dev = means.dtype, means.device
         K = cameras.K.to(dev, dtype)
         w2c = cameras.world_to_cam.to(dev, dtype)
@@ -380,11 +322,7 @@ class TorchRefRasterizer(Rasterizer):
         bg = torch.zeros(3, dtype=dtype, device=dev) if background is None else background.to(dev, dtype)
 
         with torch.no_grad():
-            flat_valid = torch.nonzero(proj.valid.reshape(-1)).squeeze(1)  # [M] indices into C*N
-            order = torch.argsort(proj.depths.detach().reshape(-1)[flat_valid], stable=True)
-            flat = flat_valid[order]  # entries in depth order
-            cam = torch.div(flat, N, rounding_mode="floor") if N > 0 else flat
-            gid = flat - cam * N
+            flat, cam, gid = depth_ordered_entries(proj.valid, proj.depths)  # [M] each: entries in depth order
         centers = cameras.centers().to(dev, dtype)  # [C, 3]
         colors = sh_colors(
             sh_degree, sh.index_select(0, gid), means.index_select(0, gid) - centers.index_select(0, cam)
@@ -434,12 +372,9 @@ class TorchRefRasterizer(Rasterizer):
             means, quats, scales, opacities, cameras.K.to(dev, dtype), cameras.world_to_cam.to(dev, dtype), W, H,
             near=near, far=far,
         )  # fmt: skip
-        flat_valid = torch.nonzero(proj.valid.reshape(-1)).squeeze(1)
-        flat = flat_valid[torch.argsort(proj.depths.reshape(-1)[flat_valid], stable=True)]  # depth order
+        flat, cam, gid = depth_ordered_entries(proj.valid, proj.depths)  # [M] each
         if flat.numel() == 0:
             return out
-        cam = torch.div(flat, N, rounding_mode="floor")
-        gid = flat - cam * N
         means2d = proj.means2d.reshape(-1, 2).index_select(0, flat)
         conics = proj.conics.reshape(-1, 3).index_select(0, flat)
         op = opacities.index_select(0, gid)
@@ -447,8 +382,7 @@ class TorchRefRasterizer(Rasterizer):
                                    W, H)  # fmt: skip
         if pix.numel() == 0:
             return out
-        pix, perm = torch.sort(pix, stable=True)
-        ent = ent.index_select(0, perm)
+        ent, pix = sort_pairs_by_pixel(ent, pix, C * H * W)
         my = means2d[:, 1] + cam.to(dtype) * H
         px, py = pixel_centres(C * H * W, W, dtype, dev)
         _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, px.index_select(0, pix),
