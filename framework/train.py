@@ -111,6 +111,7 @@ def run(cfg: DictConfig) -> float | None:
 
     from framework.build import build_component
     from framework.evaluate import evaluate_module
+    from framework.evaluation.run_cost import run_cost
     from framework.evaluation.run_record import metrics_from_summary, write_run_record
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
     from framework.lightning.data import FrameDataModule
@@ -209,13 +210,19 @@ def run(cfg: DictConfig) -> float | None:
                                     module.avatar.gaussians.num)  # fmt: skip
     trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
+    final = ckpt_dir / "last.ckpt"
     if module.bake_weights():
-        trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)
-        print(f"[splatrig] blend weights baked into each Gaussian: {ckpt_dir / 'final.ckpt'} needs no weight MLP")
+        final = ckpt_dir / "final.ckpt"
+        trainer.save_checkpoint(final, weights_only=False)
+        print(f"[splatrig] blend weights baked into each Gaussian: {final} needs no weight MLP")
     result: dict[str, float] = {}
-    if cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False):
+    evaluating = cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False)
+    if evaluating:
         result = evaluate_module(module, dm, list(cfg.eval.splits), list(cfg.eval.metrics), out_dir / "eval",
                                  logger=logger, step=trainer.global_step)  # fmt: skip
+    fps_frames = int(cfg.eval.get("fps_frames", 0)) if evaluating else 0
+    cost = run_cost(module, dm, final, train_seconds, int(trainer.global_step), fps_frames,
+                    int(cfg.eval.get("fps_warmup", 3)))  # fmt: skip
     config_name, overrides = _hydra_job()
     record = write_run_record(
         out_dir, experiment=str(cfg.task_name), config_name=config_name, overrides=overrides,
@@ -223,7 +230,7 @@ def run(cfg: DictConfig) -> float | None:
         max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
         train_cpu_seconds=round(train_cpu_seconds, 2),
         run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
-        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"],
+        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"], **cost,
         metrics=metrics_from_summary(result),
     )  # fmt: skip
     print(f"\n[splatrig] results: {out_dir}")

@@ -32,12 +32,14 @@ def _groups() -> list[str]:
     return sorted(
         p.name
         for p in root.iterdir()
-        if p.is_dir() and not p.name.startswith("_") and p.name not in ("experiment", "scene")  # appended with +
+        # experiments, +scene=auto and the trade-off points are appended with +
+        if p.is_dir() and not p.name.startswith("_") and p.name not in ("experiment", "scene", "tradeoff")
     )
 
 
 GROUP_OPTIONS = [(g, o) for g in _groups() for o in _options(g)]
 EXPERIMENTS = _options("experiment")
+TRADEOFF_POINTS = _options("tradeoff")
 
 
 def _compose(overrides: list[str]):
@@ -95,6 +97,14 @@ def test_every_group_option_composes(group: str, option: str):
 def test_every_experiment_composes(experiment: str):
     cfg = _compose([f"+experiment={experiment}"])
     assert cfg.task_name == experiment
+    _check_components(cfg)
+
+
+@pytest.mark.parametrize("point", TRADEOFF_POINTS)
+def test_every_tradeoff_point_composes(point: str):
+    """sweeps/tradeoff.yaml's points are appended like experiments; each names real components with fitting keys."""
+    cfg = _compose([f"+tradeoff={point}"])
+    assert cfg.task_name == f"tradeoff_{point}"
     _check_components(cfg)
 
 

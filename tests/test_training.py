@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -178,7 +179,7 @@ PAPER_TINY = ["+experiment=paper_full", "body=procedural", "data.body=procedural
               "profile.first_reset=5", "profile.reset_every=10", "profile.densify_stop=25",
               "densifier.refine_start=2", "densifier.refine_every=5", "callbacks.checkpoint_every=10",
               "callbacks.image_every=0", "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]",
-              "threads=1"]  # fmt: skip
+              "eval.fps_frames=4", "threads=1"]  # fmt: skip
 
 
 def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path: Path, monkeypatch):
@@ -210,3 +211,15 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     assert trained_residual, "F_dw never left its zero initialisation: stage 2 did not train it"
     summary = (run / "eval" / "summary.md").read_text()
     assert "novel_view" in summary and "novel_pose" in summary
+    # the run's cost in results.json: render speed with baked weights (both cases timed), step time, size
+    record = json.loads((run / "results.json").read_text())
+    fps = record["render_fps"]
+    assert fps["novel_pose"] > 0 and fps["novel_view"] > 0 and fps["split"] == "novel_pose" and fps["frames"] == 4
+    assert record["seconds_per_step"] == pytest.approx(record["train_seconds"] / 30, rel=1e-3, abs=1e-4)
+    assert record["checkpoint"] == "final.ckpt" and record["checkpoint_bytes"] == (ckpts / "final.ckpt").stat().st_size
+    learned = sum(
+        t.numel() * t.element_size() for k, t in last["state_dict"].items() if not k.startswith("avatar.body.")
+    )
+    # the final model also holds the baked weights [N, 17] (float32) that last.ckpt, saved before baking, lacks
+    assert record["model_bytes"] == learned + module.avatar.gaussians.num * 17 * 4
+    assert record["num_gaussians"] == module.avatar.gaussians.num

@@ -1,7 +1,8 @@
 """The per-run results record: `<run dir>/results.json`, written at the end of training, read by `framework.report`.
 
 One JSON object per run, so a sweep's runs can be collected from any number of sweep directories (a sweep run in
-parts) and reports of several kinds read the same data. Schema "splatrig.run/1":
+parts) and reports of several kinds read the same data. Schema "splatrig.run/1" (records
+written before the cost fields existed lack them; readers treat a missing field as not measured):
 
     schema          "splatrig.run/1"
     experiment      the config's task_name (the Table 4 row, e.g. "no_corrector")
@@ -13,6 +14,13 @@ parts) and reports of several kinds read the same data. Schema "splatrig.run/1":
     train_seconds   wall time of training (trainer.fit); run_seconds: of the whole run (setup, training, evaluation)
     train_cpu_seconds  CPU time of training, all threads (on a shared machine a steadier measure than wall time)
     num_gaussians   Gaussians at the end of training
+    peak_rss_mib    peak resident memory of the fit loop (MiB); cuda_peak_mib: peak allocated CUDA memory or null
+    seconds_per_step  train_seconds / steps
+    render_fps      {"novel_pose": fps, "novel_view": fps, "split", "frames", "warmup", "device"}: render speed of the
+                    final model as tools/bench_render.py measures it (framework.evaluation.run_cost); fps are null
+                    when skipped (eval.fps_frames=0) or not applicable (no body: no novel-pose fps)
+    model_bytes     bytes of the learned tensors; checkpoint_bytes: size on disk of `checkpoint` (final.ckpt, or
+                    last.ckpt when no blend weights were baked; both hold the optimizer state too)
     metrics         {split: {"image": {metric: mean}, "body_box": {metric: mean}}}: whole-image metrics (the paper's)
                     and body-box metrics (Neural Body / Animatable NeRF; framework.evaluation.body_box), averaged
                     over the split's images; e.g. metrics["novel_pose"]["body_box"]["psnr"]

@@ -14,12 +14,12 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from framework.paths import atomic_write_text
 from framework.plugins import format_table
+from framework.reporting.figures import save_png
 from framework.reporting.runs import ReportError, Run, group_runs
 from framework.reporting.stats import Difference, Spread, difference, spread, verdict
 
@@ -242,14 +242,6 @@ def figure(table: Table4):
     return fig
 
 
-def _save_png(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, path)
-    return path
-
-
 def log_tensorboard(table: Table4, markdown: str, fig, log_dir: Path) -> None:
     """The table as text, the chart as a figure and every Δ PSNR as a scalar, under `log_dir`."""
     from torch.utils.tensorboard import SummaryWriter
@@ -271,7 +263,7 @@ def write_report(runs: list[Run], out_dir: Path) -> tuple[str, list[Path]]:
     paths = [atomic_write_text(out_dir / "table4.md", markdown), atomic_write_text(out_dir / "table4.csv",
                                                                                    to_csv(table))]  # fmt: skip
     fig = figure(table)
-    paths.append(_save_png(fig, out_dir / "table4.png"))
+    paths.append(save_png(fig, out_dir / "table4.png"))
     log_tensorboard(table, markdown, fig, out_dir / "tb")
     paths.append(out_dir / "tb")
     import matplotlib.pyplot as plt

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from framework.errors import SplatrigError
-from framework.model.frame_timing import time_frames
+from framework.evaluation.run_cost import model_bytes, render_fps
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
     DEFAULT_SH_TOLERANCE,
@@ -30,7 +30,6 @@ from framework.model.pruning import (
     prune_gaussians,
     sh_band_rms,
 )
-from framework.types import FrameBatch
 
 
 @dataclass
@@ -117,22 +116,6 @@ def checkpoint_datamodule(module):
     return FrameDataModule(lambda split: build_component("dataset", data, group="data", split=split))
 
 
-def model_bytes(module) -> int:
-    """Bytes of the learned tensors: Gaussians, networks, pose refinement (the body mesh buffers are left out)."""
-    return sum(t.numel() * t.element_size() for k, t in module.state_dict().items() if not k.startswith("avatar.body."))
-
-
-def _distinct_frame_items(dataset, limit: int) -> list[int]:
-    """Item indices of up to `limit` different frames, spread over the split (one view each)."""
-    seen: dict[int, int] = {}
-    for i in range(len(dataset)):
-        frame = dataset.sample(i)[0] if hasattr(dataset, "sample") else int(dataset[i].frame[0])
-        seen.setdefault(frame, i)
-    items = list(seen.values())
-    step = max(1, len(items) // max(limit, 1))
-    return items[::step][:limit]
-
-
 # ------------------------------------------------------------------------------------------------- measuring
 @torch.no_grad()
 def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_pose"), warmup: int = 3,
@@ -159,29 +142,9 @@ def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_p
             values.append(float(psnr_metric(rgb, batch.image)[0]))
         psnr[split] = sum(values) / max(len(values), 1)
     pose_fps = view_fps = None
-    timing_split = "novel_pose" if "novel_pose" in psnr else next(iter(psnr), None)
-    if timing_split is not None and repeats > 0:
-        dataset = dm.split(timing_split)
-        batches = [dataset[i].to(device) for i in _distinct_frame_items(dataset, warmup + repeats)]
-        if len(batches) < 2:  # a tiny split: borrow poses from the training frames (any two poses differ)
-            train = dm.train_set
-            batches += [train[i].to(device) for i in _distinct_frame_items(train, warmup + repeats)]
-        sh_degree = module.sh_degree(module.trained_steps())
-        avatar = module.avatar
-
-        def new_pose(i: int) -> None:  # consecutive frames differ, so the posed-Gaussian cache never answers
-            avatar(batches[i % len(batches)], sh_degree=sh_degree)
-
-        cams = dataset.cameras.to(device)
-        first = batches[0]
-
-        def new_view(i: int) -> None:
-            view = FrameBatch(first.image, first.mask, first.boundary, cams.index(i % cams.num), first.frame,
-                              first.pose, first.root, first.betas, first.view)  # fmt: skip
-            avatar(view, sh_degree=sh_degree)
-
-        pose_fps = 1.0 / time_frames(new_pose, warmup, repeats, device)
-        view_fps = 1.0 / time_frames(new_view, warmup, repeats, device)
+    split = "novel_pose" if "novel_pose" in psnr else next(iter(psnr), None)
+    if split is not None and repeats > 0:
+        pose_fps, view_fps = render_fps(module, dm, split, warmup=warmup, repeats=repeats)
     return ModelMeasure(
         num_gaussians=module.avatar.gaussians.num,
         sh_degree=module.sh_degree(module.trained_steps()),
