@@ -16,13 +16,14 @@ import torch
 from torch import Tensor, nn
 
 from framework.build import ConfigError, build_component, node_kwargs
+from framework.guards import PSNR_MSE_FLOOR
 from framework.model.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.model.losses import CompositeLoss
 from framework.types import FrameBatch, Gaussians
 
 
 def psnr(pred: Tensor, target: Tensor) -> Tensor:
-    mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(PSNR_MSE_FLOOR)
     return -10 * torch.log10(mse)
 
 

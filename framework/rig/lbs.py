@@ -4,7 +4,7 @@ Per Gaussian i, P_i = sum_k w_ik P_k = [A_i | t_i]. The polar decomposition A_i 
 the rotation R_i and a symmetric stretch S_i (identity for a rigid blend; < 1 across a bent joint, the "candy
 wrapper"). Decisions:
 - means' = A_i x + t_i: the exact LBS position, so Gaussians follow the skinned mesh exactly.
-- quats' = quat(R_i) * q: the Gaussian's axes rotate with R_i.
+- quats' = quat(R_i) * q / |q|: the Gaussian's axes rotate with R_i.
 - scale: with stretch="diag", the Gaussian's scales are multiplied by the diagonal of S_i expressed in the Gaussian's
   own frame, k_l = a_l^T S_i a_l (a_l = its l-th axis). This is the "scale" part of P_i; the off-diagonal (shear)
   part is dropped, as the paper does. stretch="none" keeps the canonical scales (rotation + translation only).
@@ -16,13 +16,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from framework.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
+from framework.geometry import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from framework.guards import LBS_MIN_STRETCH, WEIGHT_VAR_MIN
 from framework.rig.polar import polar_decompose
 from framework.rig.sh_rotation import rotate_sh
 from framework.types import Gaussians
 
 STRETCH_MODES = ("diag", "none")
-_MIN_STRETCH = 1e-4  # floor of the per-axis stretch (a degenerate blend would otherwise give log(0))
 
 
 def blended_affine(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
@@ -44,12 +44,13 @@ def apply_lbs(gaussians: Gaussians, weights: Tensor, transforms: Tensor, stretch
     A, t = blended_affine(weights, transforms)
     R, S = polar_decompose(A)  # [N, 3, 3] each
     means = (A @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
-    quats = quat_multiply(rotmat_to_quat(R), gaussians.quats)
+    # normalised first: a quaternion below NORM_EPS means the identity, and the product must still turn with R
+    quats = quat_multiply(rotmat_to_quat(R), quat_normalize(gaussians.quats))
     log_scales = gaussians.log_scales
     if stretch == "diag":
         Q = quat_to_rotmat(gaussians.quats)  # [N, 3, 3], columns = the Gaussian's axes
         k = ((S @ Q) * Q).sum(-2)  # [N, 3] = a_l^T S a_l
-        log_scales = log_scales + torch.log(k.clamp_min(_MIN_STRETCH))
+        log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH))
     return gaussians.replace(means=means, quats=quats, log_scales=log_scales, sh=rotate_sh(gaussians.sh, R))
 
 
@@ -66,7 +67,7 @@ def weight_std(weights6: Tensor) -> Tensor:
 
     Summing (not averaging) over joints keeps the value independent of how many joints a skeleton has far away."""
     var = weights6.var(dim=-2, unbiased=False)  # [N, J]
-    tiny = 1e-12
+    tiny = WEIGHT_VAR_MIN
     # sqrt has an infinite slope at 0 (rigid regions have var = 0 exactly): mask it so gradients stay finite.
     std = torch.where(var > tiny, torch.sqrt(torch.where(var > tiny, var, torch.ones_like(var))), torch.zeros_like(var))
     return std.sum(-1)

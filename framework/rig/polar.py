@@ -22,10 +22,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
+
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = 1e-13
-_SINGULAR_TOL = 1e-6  # det(A) / (|A|_F / sqrt 3)^3 below this goes to the SVD path
-_TIKHONOV = 1e-3
 
 
 def _cross_rows(a: Tensor, b: Tensor) -> Tensor:
@@ -93,7 +93,7 @@ def polar_rotation_values(A: Tensor, method: str = "svd") -> Tensor:
     R = torch.empty_like(A64)
     det = torch.linalg.det(A64)
     scale = A64.flatten(1).norm(dim=1) / 3**0.5
-    good = det > _SINGULAR_TOL * scale**3
+    good = det > POLAR_SINGULAR_TOL * scale**3
     if good.any():
         R[good] = _rotation_newton(A64[good])
     if (~good).any():
@@ -119,7 +119,7 @@ class _PolarRotation(torch.autograd.Function):
         eye = torch.eye(3, dtype=S.dtype, device=S.device)
         B = tr[..., None, None] * eye - S  # [..., 3, 3] symmetric
         g = _vee(R64.transpose(-1, -2) @ G - G.transpose(-1, -2) @ R64)  # [..., 3]
-        d2 = (_TIKHONOV * tr.abs()) ** 2 + 1e-30
+        d2 = (POLAR_TIKHONOV * tr.abs()) ** 2 + POLAR_DAMPING_FLOOR
         h = torch.linalg.solve(B @ B + d2[..., None, None] * eye, (B @ g.unsqueeze(-1))).squeeze(-1)
         grad_A = R64 @ _skew(h)
         grad_A = torch.where(torch.isfinite(grad_A), grad_A, torch.zeros_like(grad_A))

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from framework.guards import WEIGHT_SUM_MIN
 from framework.paths import cache_dir
 from framework.rig.closest_point import closest_points
 
@@ -40,7 +41,7 @@ def surface_weights(vertices, faces, skin_weights, points) -> np.ndarray:
     w = _np(skin_weights).astype(np.float64)
     face, bary, _ = closest_points(_np(vertices), f, _np(points))
     out = (bary[:, :, None] * w[f[face]]).sum(1)  # [Q, J]
-    return out / np.clip(out.sum(1, keepdims=True), 1e-12, None)
+    return out / np.clip(out.sum(1, keepdims=True), WEIGHT_SUM_MIN, None)
 
 
 def _cache_key(vertices, faces, skin_weights, bounds: np.ndarray, resolution: int) -> str:
@@ -104,7 +105,7 @@ class WeightField(nn.Module):
             self.volume, g[None, None, None], mode="bilinear", padding_mode="border", align_corners=True
         )  # fmt: skip  [1, J, 1, 1, M]
         w = out[0, :, 0, 0].transpose(0, 1).clamp_min(0.0)  # [M, J]
-        w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
+        w = w / w.sum(-1, keepdim=True).clamp_min(WEIGHT_SUM_MIN)
         return w.to(points.dtype).reshape(*shape, -1)
 
     forward = sample
