@@ -99,13 +99,25 @@ def summary_table(summary: dict[str, float], splits: list[str], metrics: list[st
 
 
 def load_module(ckpt: str | Path, map_location: str = "cpu"):
+    """The trained model of a checkpoint, rebuilt from the config stored in it (errors name the file and the fix)."""
+    from framework.lightning.checkpoint_io import CheckpointError, read_checkpoint
     from framework.lightning.module import SplatModule
 
-    path = Path(ckpt)
-    if not path.is_file():
-        raise SplatrigError(f"ckpt={ckpt}: no such checkpoint file (look in a run's checkpoints/ folder).")
+    checkpoint = read_checkpoint(ckpt, map_location)
     load_plugins()
-    return SplatModule.load_from_checkpoint(str(path), map_location=map_location, weights_only=False)
+    hparams = checkpoint["hyper_parameters"]
+    module = SplatModule(hparams["cfg"], hparams["data_info"])
+    module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage
+    try:
+        module.load_state_dict(checkpoint["state_dict"])
+    except RuntimeError as exc:
+        lines = str(exc).strip().splitlines()
+        detail = lines[min(1, len(lines) - 1)].strip()
+        raise CheckpointError(
+            f"ckpt={ckpt}: its tensors do not fit the model its own config builds ({detail}); it was written by an "
+            f"incompatible version of splatrig or edited. Train it again."
+        ) from None
+    return module
 
 
 def datamodule_for(module):

@@ -66,6 +66,7 @@ def run(cfg: DictConfig) -> float | None:
     from framework.build import build_component
     from framework.evaluate import evaluate_module
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
+    from framework.lightning.checkpoint_io import AtomicCheckpointIO
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
@@ -143,6 +144,7 @@ def run(cfg: DictConfig) -> float | None:
         deterministic=False,
         fast_dev_run=bool(cfg.trainer.get("fast_dev_run", False)),
         limit_val_batches=cfg.trainer.get("limit_val_batches", 1.0),
+        plugins=[AtomicCheckpointIO()],  # a kill during a save leaves the previous checkpoint intact
     )
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path is not None and not Path(ckpt_path).is_file():

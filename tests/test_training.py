@@ -31,10 +31,17 @@ TINY = [
 ]
 
 
+HELPERS = Path(__file__).resolve().parent / "helpers"
+
+
 def _train(
-    tmp_path: Path, *overrides: str, wait: bool = True, cache: Path | None = None
+    tmp_path: Path, *overrides: str, wait: bool = True, cache: Path | None = None, faults: dict[str, str] | None = None
 ) -> subprocess.Popen | subprocess.CompletedProcess:
+    """Run `python -m framework.train` on the tiny static fit; `faults` (env values) loads tests/helpers/faults.py."""
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache or tmp_path / "cache"), PYTHONUNBUFFERED="1")
+    if faults is not None:
+        path = os.pathsep.join([str(HELPERS), env.get("PYTHONPATH", "")])
+        env.update(faults, SPLATRIG_PLUGINS="faults", PYTHONPATH=path)
     cmd = [sys.executable, "-m", "framework.train", *TINY, f"paths.root={tmp_path / 'out'}", *overrides]
     if wait:
         return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
