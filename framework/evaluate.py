@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from framework.atomic import atomic_path, atomic_write_text
 from framework.build import build_component
 from framework.errors import SplatrigError, reported_as_message
 from framework.plugins import format_table, load_plugins
@@ -60,6 +61,8 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
             rgb = module.render_batch(batch).render.rgb.clamp(0, 1)
             row: dict[str, Any] = {"split": split, "frame": int(batch.frame[0]),
                                    "view": -1 if batch.view is None else int(batch.view[0])}  # fmt: skip
+            if not rows:
+                _drop_metrics_that_reject(metrics, rgb, batch.image)
             for name, metric in metrics.items():
                 v = float(metric(rgb, batch.image)[0])
                 values[name].append(v)
@@ -75,18 +78,28 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
         for name, vals in values.items():
             if vals:
                 summary[f"{split}/{name}"] = float(sum(vals) / len(vals))
-    with open(out_dir / "per_frame.csv", "w", newline="") as f:
+    with atomic_path(out_dir / "per_frame.csv") as tmp, open(tmp, "w", newline="") as f:
         fields = ["split", "frame", "view", *metrics]
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
     table = summary_table(summary, splits, list(metrics))
-    (out_dir / "summary.md").write_text(table + "\n")
+    atomic_write_text(out_dir / "summary.md", table + "\n")  # written last: its presence marks a finished evaluation
     print("\n" + table)
     if logger is not None and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_scalar"):
         for key, value in summary.items():
             logger.experiment.add_scalar(f"eval/{key}", value, step)
     return summary
+
+
+def _drop_metrics_that_reject(metrics: dict[str, Any], rgb: torch.Tensor, image: torch.Tensor) -> None:
+    """Leave out, with a note, the metrics that cannot score images like these (LPIPS needs >= 31 px on a side)."""
+    for name, metric in list(metrics.items()):
+        try:
+            metric(rgb, image)
+        except (ValueError, SplatrigError) as exc:
+            print(f"[splatrig] metric '{name}' skipped: {exc}", file=sys.stderr)
+            del metrics[name]
 
 
 def summary_table(summary: dict[str, float], splits: list[str], metrics: list[str]) -> str:
@@ -138,16 +151,25 @@ def main() -> int:
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="evaluate")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
-            module = load_module(cfg.ckpt)
-            dm = datamodule_for(module)
-            splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
-            metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
-            evaluate_module(module, dm, splits, metrics, out)
-            print(f"[splatrig] evaluation written to {out}")
+            evaluate_from_config(cfg)
 
     _main()
     return 0
+
+
+def evaluate_from_config(cfg) -> Path:
+    """What `python -m framework.evaluate` does with its composed config; returns the output folder."""
+    from framework.config_checks import check_evaluate_config
+
+    check_evaluate_config(cfg)
+    module = load_module(cfg.ckpt)
+    dm = datamodule_for(module)
+    splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
+    metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
+    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
+    evaluate_module(module, dm, splits, metrics, out)
+    print(f"[splatrig] evaluation written to {out}")
+    return out
 
 
 if __name__ == "__main__":

@@ -21,7 +21,15 @@ def load_motion(module, dm, motion: str) -> tuple[torch.Tensor, torch.Tensor | N
         if not path.is_file():
             raise SplatrigError(f"motion={motion}: file not found. Give a .npz with `poses` [F, J, 3] "
                                 f"(and optionally `roots` [F, 4, 4]) or a split name (novel_pose, train).")  # fmt: skip
-        data = np.load(path)
+        try:
+            data = np.load(path)
+        except (OSError, ValueError) as exc:
+            why = type(exc).__name__
+            raise SplatrigError(f"motion={motion}: cannot be read as a numpy file ({why}); give a .npz with `poses` "
+                                f"[F, J, 3] (and optionally `roots` [F, 4, 4]).") from None  # fmt: skip
+        if path.suffix == ".npz" and "poses" not in data:
+            raise SplatrigError(f"motion={motion}: the .npz holds {sorted(data.files)} but no `poses` [F, J, 3]; "
+                                f"save the joint rotations under the key `poses`.")  # fmt: skip
         poses = torch.as_tensor(data["poses"] if path.suffix == ".npz" else data, dtype=torch.float32)
         roots = torch.as_tensor(data["roots"], dtype=torch.float32) if path.suffix == ".npz" and "roots" in data \
             else None  # fmt: skip
@@ -29,6 +37,11 @@ def load_motion(module, dm, motion: str) -> tuple[torch.Tensor, torch.Tensor | N
         if body is not None and (poses.ndim != 3 or poses.shape[1:] != (body.num_joints, 3)):
             raise SplatrigError(f"motion={motion}: poses have shape {tuple(poses.shape)}, expected "
                                 f"[F, {body.num_joints}, 3] for body '{module.cfg['body']['name']}'.")  # fmt: skip
+        for name, values in (("poses", poses), ("roots", roots)):
+            if values is not None and not bool(torch.isfinite(values).all()):
+                frame = int((~torch.isfinite(values.flatten(1))).any(1).nonzero()[0])
+                raise SplatrigError(f"motion={motion}: `{name}` of frame {frame} holds a non-finite value; expected "
+                                    f"finite numbers (re-export the motion or drop that frame).")  # fmt: skip
         return poses, roots, [-1] * poses.shape[0]
     dataset = dm.split(motion)
     all_poses = dataset.poses()
@@ -59,6 +72,9 @@ def render_sequence(module, dm, motion: str, cameras: str, camera_index: int, tu
         orbit = orbit_cameras(center, dist, 0.0, max(n, 1), width, height, fov_deg=fov, turns=turns)
         cams = [orbit.index(i) for i in range(n)]
     elif cameras == "fixed":
+        if not 0 <= camera_index < train_cams.num:
+            raise SplatrigError(f"camera_index={camera_index}: the training rig has cameras 0..{train_cams.num - 1}; "
+                                f"pick one of them.")  # fmt: skip
         scale = width / train_cams.width
         K = train_cams.K[camera_index : camera_index + 1].clone()
         K[:, :2] *= scale
@@ -90,27 +106,39 @@ def main() -> int:
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="render")
     def _main(cfg: DictConfig) -> None:
-        import imageio.v3 as iio
-
-        from framework.evaluate import datamodule_for, load_module
-
         with reported_as_message():
-            module = load_module(cfg.ckpt)
-            module.eval()
-            dm = datamodule_for(module)
-            images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
-                                     float(cfg.orbit_turns), cfg.resolution, cfg.max_frames)  # fmt: skip
-            name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / name
-            (out / "frames").mkdir(parents=True, exist_ok=True)
-            for i, img in enumerate(images):
-                iio.imwrite(out / "frames" / f"{i:05d}.png", img)
-            video = out / f"{name}.mp4"
-            iio.imwrite(video, np.stack(images), fps=int(cfg.fps), codec="libx264", macro_block_size=1)
-            print(f"[splatrig] wrote {len(images)} frames to {out / 'frames'} and {video}")
+            render_from_config(cfg)
 
     _main()
     return 0
+
+
+def render_from_config(cfg) -> Path:
+    """What `python -m framework.render` does with its composed config; returns the output folder. Every file is
+    written atomically (a rerun after an interruption never finds a half-written frame or video)."""
+    import imageio.v3 as iio
+
+    from framework.atomic import atomic_path
+    from framework.config_checks import check_render_config
+    from framework.evaluate import datamodule_for, load_module
+
+    check_render_config(cfg)
+    module = load_module(cfg.ckpt)
+    module.eval()
+    dm = datamodule_for(module)
+    images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
+                             float(cfg.orbit_turns), cfg.resolution, cfg.max_frames)  # fmt: skip
+    name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
+    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / name
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    for i, img in enumerate(images):
+        with atomic_path(out / "frames" / f"{i:05d}.png") as tmp:
+            iio.imwrite(tmp, img)
+    video = out / f"{name}.mp4"
+    with atomic_path(video) as tmp:
+        iio.imwrite(tmp, np.stack(images), fps=int(cfg.fps), codec="libx264", macro_block_size=1)
+    print(f"[splatrig] wrote {len(images)} frames to {out / 'frames'} and {video}")
+    return out
 
 
 if __name__ == "__main__":

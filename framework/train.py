@@ -64,6 +64,7 @@ def run(cfg: DictConfig) -> float | None:
     from lightning.pytorch.loggers import TensorBoardLogger
 
     from framework.build import build_component
+    from framework.config_checks import check_train_config
     from framework.evaluate import evaluate_module
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
     from framework.lightning.checkpoint_io import AtomicCheckpointIO
@@ -71,6 +72,7 @@ def run(cfg: DictConfig) -> float | None:
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
 
+    check_train_config(cfg)
     load_plugins()
     quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)

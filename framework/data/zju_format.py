@@ -57,6 +57,32 @@ class ZjuFormatError(SplatrigError, ValueError):
     """A sequence on disk does not follow the layout; the message names the file, what was expected and found."""
 
 
+class ZjuMissingFileError(ZjuFormatError, FileNotFoundError):
+    """A file the layout needs is missing (still a FileNotFoundError for code that tolerates optional files)."""
+
+
+ROTATION_TOL = 1e-3  # |R R^T - I| and |det R - 1| a calibration rotation may be off by (float32 exports, rounding)
+IMAGE_END_MARKERS = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND\xaeB`\x82"}
+
+
+def check_complete(path: Path, what: str = "image file") -> None:
+    """Raise ZjuFormatError when a JPEG or PNG file lacks its end marker: a copy or an export cut short. (OpenCV
+    decodes a truncated JPEG without an error, grey below the cut.)"""
+    marker = IMAGE_END_MARKERS.get(path.suffix.lower())
+    if marker is None:
+        return
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 64))
+        tail = f.read()
+    if marker not in tail:
+        end = "end-of-image marker FF D9" if path.suffix.lower() in (".jpg", ".jpeg") else "IEND chunk"
+        raise ZjuFormatError(
+            f"{what} {path} is truncated: it does not end with the {path.suffix.lstrip('.').upper()} {end}; copy or "
+            f"export it again."
+        )
+
+
 # ----------------------------------------------------------------------------------------------------------- naming
 def zju_camera_names(num_cameras: int, style: str = "zju") -> list[str]:
     """Folder names of the public data: "Camera_B1".. (most ZJU sequences) or "Camera (1)".. (313/315)."""
@@ -137,11 +163,12 @@ def read_image(path: Path) -> np.ndarray:
     """uint8 [H, W, 3] RGB."""
     import cv2
 
+    if not path.exists():
+        raise ZjuMissingFileError(f"image file {path} is missing (listed in annots.npy 'ims')")
+    check_complete(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        if not path.exists():
-            raise FileNotFoundError(f"image file {path} is missing (listed in annots.npy 'ims')")
-        raise ZjuFormatError(f"image file {path} exists but cannot be decoded")
+        raise ZjuFormatError(f"image file {path} exists but cannot be decoded as an image; export it again")
     return img[..., ::-1].copy()
 
 
@@ -149,9 +176,10 @@ def read_mask_file(path: Path) -> np.ndarray:
     """uint8 [H, W] in {0, 1}: foreground wherever the stored value (first channel) is non-zero."""
     import cv2
 
+    check_complete(path, "mask file")
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
-        raise ZjuFormatError(f"mask file {path} exists but cannot be decoded")
+        raise ZjuFormatError(f"mask file {path} exists but cannot be decoded as an image; export it again")
     if m.ndim == 3:
         m = m[..., 2] if m.shape[2] >= 3 else m[..., 0]  # cv2 gives BGR(A): the first stored channel is R
     return (m != 0).astype(np.uint8)
@@ -370,7 +398,7 @@ class ZjuSequence:
             hint = ""
             if (self.root / ".cams_partial.npy").exists():
                 hint = " A writer started here but never called finish(); re-run the generator."
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"{path} is missing: expected annots.npy (dict with 'cams' K/D/R/T and per-frame 'ims') at the root "
                 f"of a ZJU-MoCap-layout sequence; check `root` (found {self._listing()}).{hint}"
             )
@@ -414,6 +442,21 @@ class ZjuSequence:
             bad = np.where(~np.isfinite(arr).reshape(C, -1).all(1))[0]
             if bad.size:
                 raise ZjuFormatError(f"{path}: cams['{name}'] of camera {int(bad[0])} has non-finite values")
+        for c in range(C):
+            off = float(np.abs(R[c] @ R[c].T - np.eye(3)).max())
+            det = float(np.linalg.det(R[c]))
+            if off > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
+                raise ZjuFormatError(
+                    f"{path}: cams['R'] of camera {c} is not a rotation (|R R^T - I| = {off:.3g}, det = {det:.3g}); "
+                    f"expected an orthonormal world-to-camera rotation with det +1. Export the calibration again "
+                    f"(a scaled or mirrored R is not a camera pose)."
+                )
+            fx, fy = float(K[c, 0, 0]), float(K[c, 1, 1])
+            if fx <= 0 or fy <= 0 or np.abs(K[c, 2] - [0.0, 0.0, 1.0]).max() > 1e-6:
+                raise ZjuFormatError(
+                    f"{path}: cams['K'] of camera {c} has fx = {fx:g}, fy = {fy:g}, last row {K[c, 2].tolist()}; "
+                    f"expected positive focal lengths in pixels, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."
+                )
         return ZjuCameras(K=K, D=D, R=R, T_mm=T)
 
     def _parse_ims(self, ims: list, path: Path) -> list[list[str]]:
@@ -466,11 +509,52 @@ class ZjuSequence:
         """uint8 [H, W, 3] RGB, as stored (distorted)."""
         path = self.image_path(frame, view)
         if not path.exists():
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"image file {path} of frame {frame}, view {view} is missing: annots.npy lists "
                 f"'{self.ims[frame][view]}' but no such file exists under {self.root} (expected a {path.suffix} image)"
             )
         return read_image(path)
+
+    def check_files(self, frames: list[int], views: list[int], mask_dir: str = "auto") -> tuple[int, int]:
+        """Open every image and mask of (frames x views) far enough to know it is there, complete, and of one size
+        with its mask and the other images (headers only: ~1 ms a pair); returns (width, height). Errors name the
+        file, the frame and the view."""
+        from PIL import Image, UnidentifiedImageError
+
+        def size(path: Path, what: str, frame: int, view: int) -> tuple[int, int]:
+            try:
+                with Image.open(path) as im:
+                    wh = im.size
+            except (UnidentifiedImageError, OSError) as exc:
+                raise ZjuFormatError(f"{what} {path} (frame {frame}, view {view}) cannot be read as an image "
+                                     f"({type(exc).__name__}); export it again") from None  # fmt: skip
+            check_complete(path, what)
+            return wh
+
+        expected: tuple[int, int] | None = None
+        for f in frames:
+            for v in views:
+                image = self.image_path(f, v)
+                if not image.exists():
+                    self.image(f, v)  # raises the missing-image message
+                wh = size(image, "image file", f, v)
+                if expected is None:
+                    expected, first = wh, image
+                elif wh != expected:
+                    raise ZjuFormatError(
+                        f"{image} (frame {f}, view {v}): image is {wh[0]}x{wh[1]} but {first.name} of frame "
+                        f"{frames[0]}, view {views[0]} is {expected[0]}x{expected[1]}; every image of a sequence must "
+                        f"have the same size"
+                    )
+                mask = self.mask_path(f, v, mask_dir)
+                mwh = size(mask, "mask file", f, v)
+                if mwh != wh:
+                    raise ZjuFormatError(
+                        f"{mask} (frame {f}, view {v}): mask is {mwh[0]}x{mwh[1]} (WxH) but its image {image.name} is "
+                        f"{wh[0]}x{wh[1]}; masks must match their images pixel for pixel"
+                    )
+        assert expected is not None
+        return expected
 
     def available_mask_dirs(self) -> list[str]:
         return [d for d in MASK_DIRS if (self.root / d).is_dir()]
@@ -486,7 +570,7 @@ class ZjuSequence:
         for c in candidates:
             if c.exists():
                 return c
-        raise FileNotFoundError(
+        raise ZjuMissingFileError(
             f"mask of frame {frame}, view {view} is missing: looked for {', '.join(str(c) for c in candidates)}"
         )
 
@@ -497,7 +581,7 @@ class ZjuSequence:
     def _numbered(self, dirname: str | None, kind: str, frame: int) -> Path:
         n = self.file_numbers[frame]
         if dirname is None:
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"{kind} of frame {frame}: no {' or '.join(PARAMS_DIRS if kind == 'params' else VERTICES_DIRS)} "
                 f"folder under {self.root}"
             )
@@ -505,7 +589,7 @@ class ZjuSequence:
             p = self.root / dirname / name
             if p.exists():
                 return p
-        raise FileNotFoundError(
+        raise ZjuMissingFileError(
             f"{kind} of frame {frame} is missing: expected {self.root / dirname / f'{n}.npy'} (file number {n} from "
             f"image '{self.ims[frame][0]}')"
         )

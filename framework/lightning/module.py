@@ -315,23 +315,23 @@ def restore_rng_states(states: dict[str, Any]) -> None:
 
 
 def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
-    problems = []
+    """The stored tensors fit this run's model only if its structural components are the same ones, built alike."""
+    problems, fixes = [], []
     for group in STRUCTURAL_GROUPS:
         old_name, _ = node_kwargs(stored.get(group))
         new_name, _ = node_kwargs(current.get(group))
         if old_name != new_name:
             problems.append(f"{group}: checkpoint has '{old_name}', this run has '{new_name}'")
+            fixes.append(f"{group}={old_name}")
     old_body, new_body = node_kwargs(stored.get("body"))[1], node_kwargs(current.get("body"))[1]
     if not problems and old_body != new_body:  # same body, another build of it (e.g. anny's skeleton)
-        changed = sorted(k for k in set(old_body) | set(new_body) if old_body.get(k) != new_body.get(k))
-        problems.append("body options " + ", ".join(f"{k}: checkpoint has {old_body.get(k)!r}, this run has "
-                                                    f"{new_body.get(k)!r}" for k in changed))  # fmt: skip
+        for k in sorted(k for k in set(old_body) | set(new_body) if old_body.get(k) != new_body.get(k)):
+            problems.append(f"body.{k}: checkpoint has {old_body.get(k)!r}, this run has {new_body.get(k)!r}")
+            fixes.append(f"body.{k}={old_body.get(k)}")
     if problems:
         raise ConfigError(
             "the checkpoint was made with an incompatible config (" + "; ".join(problems) + "). Resume with the "
-            "same choices (e.g. `"
-            + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
-            + "`), or start a new run without ckpt_path."
+            "checkpoint's choices (`" + " ".join(fixes) + "`), or start a new run without ckpt_path."
         )
 
 

@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from framework.data.boundary import boundary_mask
-from framework.data.zju_format import ZjuFormatError, ZjuSequence, check_body_compatible
+from framework.data.zju_format import ZjuFormatError, ZjuMissingFileError, ZjuSequence, check_body_compatible
 from framework.interfaces import MultiViewDataset
 from framework.registry import register
 from framework.types import Cameras, FrameBatch
@@ -181,7 +181,7 @@ class ZjuMocapDataset(MultiViewDataset):
         self.boundary_px = int(boundary_px)
         self.mask_dir = mask_dir
         if mask_dir != "auto" and not (self.root / mask_dir).is_dir():
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"zju_mocap: mask_dir='{mask_dir}' but {self.root / mask_dir} does not exist; "
                 f"found {self.seq.available_mask_dirs() or 'no mask folder'}; use mask_dir=auto"
             )
@@ -248,9 +248,8 @@ class ZjuMocapDataset(MultiViewDataset):
         # ---- poses (whole sequence: pose-refinement tables are num_frames_total long)
         self._load_params(body)
 
-        # ---- cameras (all views), image size from the first image of the split
-        first = self.seq.image(self.frame_ids[0], self.views[0])
-        self.src_height, self.src_width = first.shape[:2]
+        # ---- every image and mask of the split: present, complete, one size (cameras: checked by ZjuSequence)
+        self.src_width, self.src_height = self.seq.check_files(self.frame_ids, self.views, mask_dir)
         self.width = max(1, int(self.src_width / self.downscale))
         self.height = max(1, int(self.src_height / self.downscale))
         K = self.seq.cameras.K_splatrig()  # [C, 3, 3]
@@ -319,7 +318,7 @@ class ZjuMocapDataset(MultiViewDataset):
                 body_key = str(p["body"])
             poses.append(pose.reshape(J, 3)), rh.append(r), th.append(t), shapes.append(s)
         if J is None:
-            raise FileNotFoundError(f"zju_mocap: no params file found under {self.root}: {last_exc}")
+            raise ZjuMissingFileError(f"zju_mocap: no params file found under {self.root}: {last_exc}")
         if missing:
             log.warning(
                 "zju_mocap: %d frame(s) outside the split have no params (e.g. frame %d); using rest pose",
@@ -418,6 +417,12 @@ class ZjuMocapDataset(MultiViewDataset):
                 f"{mpath} (frame {frame}, view {view}): mask is {m.shape[1]}x{m.shape[0]} (WxH) but its image "
                 f"{self.seq.image_path(frame, view).name} is {img.shape[1]}x{img.shape[0]}; masks must match their "
                 f"images pixel for pixel"
+            )
+        if not m.any():
+            raise ZjuFormatError(
+                f"{mpath} (frame {frame}, view {view}): the mask is empty (no foreground pixel); every (frame, view) "
+                f"of a split must show the subject. Fix the mask, or leave the frame out (train_frames) or the view "
+                f"(train_views / test_views)"
             )
         img = self._resize(self._undistort(view, img))
         m = self._resize(self._undistort(view, m * np.uint8(255)))
