@@ -38,12 +38,14 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 
 ANNOTS = "annots.npy"
@@ -129,11 +131,9 @@ def mask_relpath(image_path: str) -> str:
 
 # ----------------------------------------------------------------------------------------------------------- io
 def save_pickled_dict(path: Path, data: dict) -> None:
-    """np.save of a dict, as the public files are (a pickled 0-d object array)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, np.array(data, dtype=object), allow_pickle=True)
-    os.replace(tmp, path)
+    """np.save of a dict, as the public files are (a pickled 0-d object array); atomic."""
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.array(data, dtype=object), allow_pickle=True)
 
 
 def load_pickled_dict(path: Path) -> dict:
@@ -151,12 +151,14 @@ def load_pickled_dict(path: Path) -> dict:
 
 
 def write_image(path: Path, rgb: np.ndarray, jpeg_quality: int = 95) -> None:
+    """RGB uint8 [H, W, 3] (or a single-channel mask [H, W]) to a JPEG/PNG file, atomically."""
     import cv2
 
-    path.parent.mkdir(parents=True, exist_ok=True)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if path.suffix.lower() in (".jpg", ".jpeg") else []
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1]), params):
-        raise OSError(f"could not write image {path}")
+    pixels = np.ascontiguousarray(rgb[..., ::-1] if rgb.ndim == 3 else rgb)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), pixels, params):
+            raise OSError(f"could not write image {path}")
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -197,7 +199,9 @@ class ZjuWriter:
 
     Frames may be written by several writer instances (processes) into the same root; `finish(num_frames)` rebuilds
     the `ims` list from the deterministic names, so any one process can finish. Until `finish`, there is no
-    annots.npy, so a half-written sequence is never mistaken for a complete one.
+    annots.npy, so a half-written sequence is never mistaken for a complete one. Every file is written atomically and
+    a frame is marked done (`.frames_done/<frame>`) only after all its files, so an interrupted writer can be resumed
+    with `frame_done` telling which frames are complete.
     """
 
     def __init__(
@@ -288,16 +292,11 @@ class ZjuWriter:
             raise ValueError(f"frame {frame}: masks must be {images.shape[:3]}, got {masks.shape}")
         if images.dtype != np.uint8:
             raise ValueError(f"frame {frame}: images must be uint8, got {images.dtype}")
-        import cv2
-
         for v in range(C):
             rel = self.image_path(frame, v)
             write_image(self.root / rel, images[v], self.jpeg_quality)
-            mpath = self.root / self.mask_dir / mask_relpath(rel)
-            mpath.parent.mkdir(parents=True, exist_ok=True)
             m = (masks[v] != 0).astype(np.uint8) * np.uint8(self.mask_value)
-            if not cv2.imwrite(str(mpath), m):
-                raise OSError(f"could not write mask {mpath}")
+            write_image(self.root / self.mask_dir / mask_relpath(rel), m)
         n = self.file_number(frame)
         if params is not None:
             save_pickled_dict(self.root / "params" / f"{n}.npy", normalize_params(params, f"frame {frame}"))
@@ -305,9 +304,17 @@ class ZjuWriter:
             verts = np.asarray(vertices, dtype=np.float32)
             if verts.ndim != 2 or verts.shape[1] != 3:
                 raise ValueError(f"frame {frame}: vertices must be [V, 3], got {verts.shape}")
-            (self.root / "vertices").mkdir(parents=True, exist_ok=True)
-            np.save(self.root / "vertices" / f"{n}.npy", verts)
+            with atomic_path(self.root / "vertices" / f"{n}.npy") as tmp:
+                np.save(tmp, verts)
+        with atomic_path(self.root / self.DONE / str(frame)) as tmp:
+            tmp.touch()
         self._written.add(frame)
+
+    DONE = ".frames_done"
+
+    def frame_done(self, frame: int) -> bool:
+        """Every file of `frame` was written (by this or an earlier, interrupted writer)."""
+        return (self.root / self.DONE / str(frame)).is_file()
 
     def finish(self, num_frames: int | None = None) -> Path:
         """Write annots.npy for frames 0..num_frames-1 (default: 0..max written); checks every image exists."""
@@ -336,6 +343,7 @@ class ZjuWriter:
         save_pickled_dict(out, {"cams": cams, "ims": ims})
         if partial.exists():
             partial.unlink()
+        shutil.rmtree(self.root / self.DONE, ignore_errors=True)
         return out
 
 

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from framework.atomic import atomic_path
 from framework.data.boundary import boundary_mask
 from framework.data.zju_format import ZjuFormatError, ZjuMissingFileError, ZjuSequence, check_body_compatible
 from framework.interfaces import MultiViewDataset
@@ -446,9 +447,8 @@ class ZjuMocapDataset(MultiViewDataset):
             packed = np.packbits(b.astype(bool).ravel())
             self._boundary_mem[key] = packed
             if disk is not None:
-                tmp = disk.with_name(disk.stem + f".{os.getpid()}.tmp.npy")
-                np.save(tmp, packed)
-                os.replace(tmp, disk)
+                with atomic_path(disk) as tmp:
+                    np.save(tmp, packed)
         n = self.width * self.height
         return np.unpackbits(packed, count=n).reshape(self.height, self.width).astype(np.float32)
 
