@@ -272,37 +272,21 @@ def composite(
     width: int,
     height: int,
     kernels: Kernels,
+    split_rows: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Entries sorted by depth -> per-pixel (rgb sum [CHW, 3], T_final [CHW], depth [CHW]).
 
     A render whose screen boxes hold more pairs than `framework.splat.bands` allows is drawn in row bands (centres
     shifted up by the band's first row), so a 4096 x 4096 image needs memory for one band's pairs, not all of them."""
-    bands = row_bands(means2d, half, width, height)
+    bands = row_bands(means2d, half, width, height) if split_rows else [(0, height)]
     if len(bands) > 1:
         entries = (conics, opacities, colors, depths, cam, half, num_cameras, width)
         shift = means2d.new_tensor([0.0, 1.0])
-        parts = [_composite_rows(means2d - r0 * shift, *entries, r1 - r0, kernels) for r0, r1 in bands]
+        parts = [composite(means2d - r0 * shift, *entries, r1 - r0, kernels, False) for r0, r1 in bands]
         return tuple(
             torch.cat([p[i].reshape(num_cameras, -1, width, *p[i].shape[1:]) for p in parts], dim=1).flatten(0, 2)
             for i in range(3)
         )  # type: ignore[return-value]
-    return _composite_rows(means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height, kernels)
-
-
-def _composite_rows(
-    means2d: Tensor,  # [M, 2]
-    conics: Tensor,  # [M, 3]
-    opacities: Tensor,  # [M]
-    colors: Tensor,  # [M, 3]
-    depths: Tensor,  # [M]
-    cam: Tensor,  # [M]
-    half: Tensor,  # [M, 2]
-    num_cameras: int,
-    width: int,
-    height: int,
-    kernels: Kernels,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """`composite` of rows 0..height-1 (pairs outside them are never enumerated)."""
     # Shift each entry's y by camera * height so row = pix // width addresses every camera's pixels.
     mx = means2d[:, 0].contiguous()
     my = (means2d[:, 1] + cam.to(means2d.dtype) * height).contiguous()
