@@ -3,7 +3,7 @@ its message is the one docs/errors.md shows (tests/errors_table.py).
 
 Cases run in-process through the same functions the entry points call (`framework.train.run`,
 `framework.evaluate.evaluate_from_config`, `framework.render.render_from_config`) inside `reported_as_message`,
-with configs composed by Hydra as on the command line; three run through the real command line as well.
+with configs composed by Hydra as on the command line; two run through the real command line as well.
 """
 
 from __future__ import annotations
@@ -230,9 +230,10 @@ def test_every_documented_case_is_tested() -> None:
     assert set(rows()) == {c.id for c in CASES} | set(DIVERGENCE_CASES)
 
 
-@pytest.mark.parametrize("case_id", ["sh_degree_7", "evaluate_no_ckpt", "render_motion_no_poses"])
+@pytest.mark.parametrize("case_id", ["evaluate_no_ckpt", "render_motion_no_poses"])
 def test_command_line_prints_the_same_one_line(case_id: str, world: dict[str, Path], tmp_path: Path) -> None:
-    """The real entry points (Hydra's main, a fresh process): exit status 2, no traceback, the documented line."""
+    """The real entry points (Hydra's main, a fresh process): exit status 2, no traceback, the documented line
+    (framework.train's command line is run by tests/test_training.py and tests/test_divergence.py)."""
     case = next(c for c in CASES if c.id == case_id)
     placeholders = {k: str(v) for k, v in world.items()}
     extra = [f"paths.root={tmp_path}"] if case.entry == "train" else [f"out_dir={tmp_path}"]

@@ -56,10 +56,18 @@ def _load(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
-def test_static_fit_trains_and_reports(tmp_path: Path):
-    proc = _train(tmp_path, "trainer.max_steps=40")
+@pytest.fixture(scope="module")
+def whole_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess]:
+    """One uninterrupted tiny static fit of 60 steps (the reference of the kill/resume test too)."""
+    root = tmp_path_factory.mktemp("whole")
+    proc = _train(root, "trainer.max_steps=60", cache=root / "cache")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run = _run_dirs(tmp_path)[-1]
+    return root, proc
+
+
+def test_static_fit_trains_and_reports(whole_run):
+    root, proc = whole_run
+    run = _run_dirs(root)[-1]
     assert (run / "config_resolved.yaml").is_file()
     assert (run / "checkpoints" / "last.ckpt").is_file()
     assert (run / "checkpoints" / "best.ckpt").is_file()
@@ -67,20 +75,18 @@ def test_static_fit_trains_and_reports(tmp_path: Path):
     assert "novel_view" in summary and "psnr" in summary
     assert str(run) in proc.stdout  # tells the user where the results are
     ckpt = _load(run / "checkpoints" / "last.ckpt")
-    assert ckpt["global_step"] == 40
+    assert ckpt["global_step"] == 60
     events = list((run / "tb").rglob("events.out.tfevents.*"))
     assert events, "no TensorBoard event file written"
 
 
-def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run(tmp_path: Path):
+def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run(tmp_path: Path, whole_run):
     """A run killed while it writes the step-30 checkpoint keeps the step-20 one loadable; resumed, it continues the
     step count, the optimizer's and the densifier's state and the random streams, and ends where an uninterrupted
     run ends (same parameters within float noise, same metrics)."""
-    cache = tmp_path / "cache"
-    whole, killed = tmp_path / "whole", tmp_path / "killed"
-    whole.mkdir(), killed.mkdir()
-    proc = _train(whole, "trainer.max_steps=60", cache=cache)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    whole = whole_run[0]
+    cache, killed = whole / "cache", tmp_path / "killed"
+    killed.mkdir()
     marker = tmp_path / "stalled"
     faults = {"SPLATRIG_TEST_STALL_CHECKPOINT_AT": "30", "SPLATRIG_TEST_STALL_MARKER": str(marker)}
     proc = _train(killed, "trainer.max_steps=60", wait=False, cache=cache, faults=faults)

@@ -59,9 +59,11 @@ class DivergencePolicy:
 
 
 def finite_probe(tensors: Iterable[Tensor | None]) -> Tensor:
-    """One float64 scalar that is finite iff every given tensor is (None entries are skipped)."""
-    sums = [t.detach().sum(dtype=torch.float64) for t in tensors if t is not None and t.numel()]
-    return torch.stack(sums).sum() if sums else torch.zeros((), dtype=torch.float64)
+    """One scalar that is finite iff every given tensor is (None entries are skipped), unless a sum overflows float32
+    (entries around 1e32: a divergence of its own). Sums in the tensors' dtype: 3-4x faster than float64 sums on a CPU
+    (0.6 vs 2.4 ms for 1.5 M values, the parameters and gradients of 10k Gaussians)."""
+    sums = [t.detach().sum().float() for t in tensors if t is not None and t.numel()]
+    return torch.stack(sums).sum() if sums else torch.zeros(())
 
 
 def grads_and_params(optimizer: torch.optim.Optimizer) -> tuple[list[Tensor | None], list[Tensor]]:
