@@ -53,3 +53,14 @@ def build_component(kind: str, node: DictConfig | dict[str, Any] | None, group: 
             f"config group '{group}' ({kind} '{name}'): {exc}. Check the keys in conf/{group}/{name}.yaml or your "
             f"command-line overrides against {cls.__module__}.{cls.__qualname__}."
         ) from None
+
+
+def with_fitted_betas(body_node: DictConfig | dict[str, Any] | None, betas: list[float] | None) -> dict | None:
+    """The body node with `betas` filled from the data when the body takes betas and the config leaves them null, so
+    an SMPL-family body gets the shape the capture's poses were fitted with."""
+    if body_node is None:
+        return None
+    node = OmegaConf.to_container(body_node, resolve=True) if isinstance(body_node, DictConfig) else dict(body_node)
+    if betas is None or "betas" not in node or node["betas"] is not None:
+        return node
+    return {**node, "betas": [float(b) for b in betas]}

@@ -102,6 +102,7 @@ def run(cfg: DictConfig) -> float | None:
         "num_frames_total": int(train_set.num_frames_total),
         "body_name": train_set.body_name,
         "num_joints": None if poses is None else int(poses.shape[1]),
+        "betas": None if train_set.fitted_betas() is None else train_set.fitted_betas().tolist(),
     }
     module = SplatModule(container, data_info)
 

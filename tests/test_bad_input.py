@@ -57,7 +57,7 @@ CASES = [
          ["+experiment=paper_full", "trainer.max_steps=100", "stages.stage1_steps=200"]),
     Case("resolution_0", "train", "`data.resolution=0`", ["data.resolution=0"]),
     Case("unknown_component", "train", "`rasterizer.name=torch_reff`", ["rasterizer.name=torch_reff"]),
-    # ---- dataset files (framework/data/zju_format.py, plugins/dataset/zju_mocap.py)
+    # ---- dataset files (framework/data/zju/, framework/data/sequence_dataset.py)
     Case("image_size_mismatch", "train", "`data.root=` a sequence with one 48x30 image among 48x48 ones",
          seq("imgsize")),
     Case("mask_size_mismatch", "train", "`data.root=` a sequence whose mask of frame 1, view 2 is 48x40",

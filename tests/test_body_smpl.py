@@ -21,20 +21,31 @@ smplx = pytest.importorskip("smplx")
 N_VERTS = 6890
 
 
-def write_smpl_file(path, posedirs_scale: float = 0.0, seed: int = 0) -> dict[str, np.ndarray]:
+def padded_procedural_mesh(num_vertices: int, seed: int = 0) -> tuple[ProceduralBody, np.ndarray, np.ndarray]:
+    """The procedural body's rest vertices padded to `num_vertices` with surface samples (not referenced by faces),
+    and skinning weights interpolated from the triangle each sample lies on: (body, v [V, 3], w [V, J]) float64."""
     body = ProceduralBody()
     V0 = body.rest_vertices.shape[0]
-    pts, fid, bary = body.surface_samples(N_VERTS - V0, seed=seed)
+    pts, fid, bary = body.surface_samples(num_vertices - V0, seed=seed)
     w_extra = (bary.unsqueeze(-1) * body.skin_weights[body.faces[fid]]).sum(1)
-    v = torch.cat([body.rest_vertices, pts]).double().numpy()  # [6890, 3]
-    w = torch.cat([body.skin_weights, w_extra]).double().numpy()  # [6890, J]
+    v = torch.cat([body.rest_vertices, pts]).double().numpy()
+    w = torch.cat([body.skin_weights, w_extra]).double().numpy()
+    return body, v, w
+
+
+def nearest_vertex_regressor(v: np.ndarray, points: np.ndarray, k: int = 8) -> np.ndarray:
+    """[len(points), V]: the mean of the k vertices nearest each point (a convex combination, like SMPL's)."""
+    reg = np.zeros((len(points), len(v)))
+    for row, p in enumerate(points):
+        reg[row, np.argsort(np.linalg.norm(v - p, axis=1))[:k]] = 1.0 / k
+    return reg
+
+
+def write_smpl_file(path, posedirs_scale: float = 0.0, seed: int = 0) -> dict[str, np.ndarray]:
+    body, v, w = padded_procedural_mesh(N_VERTS, seed)  # [6890, 3], [6890, J]
     J = body.num_joints
     rng = np.random.default_rng(seed)
-    # joint regressor: mean of the 8 rest vertices nearest each procedural joint (a convex combination, like SMPL's)
-    Jreg = np.zeros((J, N_VERTS))
-    for k, j in enumerate(body.rest_joints.double().numpy()):
-        near = np.argsort(np.linalg.norm(v - j, axis=1))[:8]
-        Jreg[k, near] = 1.0 / 8
+    Jreg = nearest_vertex_regressor(v, body.rest_joints.double().numpy())
     shapedirs = np.zeros((N_VERTS, 3, 10))
     shapedirs[:, :, 0] = 0.05 * v  # beta 0: global size
     shapedirs[:, :, 1:] = 0.01 * rng.standard_normal((N_VERTS, 3, 9))

@@ -116,12 +116,38 @@ def test_ablation_rows_differ_from_paper_full_in_one_place():
         assert changed == keys, f"{name} changes {changed}, expected {keys}"
 
 
-@pytest.mark.parametrize("data", ["zju_mocap", "synthetic_studio_gpu", "static_scene"])
+@pytest.mark.parametrize("data", ["zju_mocap", "easymocap", "synthetic_studio_gpu", "static_scene"])
 def test_paper_full_runs_on_any_dataset_option(data: str):
     """`+experiment=paper_full data=zju_mocap data.root=...` is how real data is trained: the experiment must not
     push keys into the data node that only the synthetic studio understands."""
     cfg = _compose(["+experiment=paper_full", f"data={data}", "data.root=/somewhere"])
     _check_components(cfg)
+
+
+def test_own_capture_options_compose_with_paper_full():
+    """An EasyMocap capture with an SMPL-X body: the data node takes the body's model file and gender (for SMPL-X
+    hand PCA poses), and the composed nodes fit their constructors."""
+    cfg = _compose(["+experiment=paper_full", "data=easymocap", "data.root=/cap", "body=smplx",
+                    "body.model_path=/models/SMPLX_MALE.pkl", "body.gender=male"])  # fmt: skip
+    _check_components(cfg)
+    assert cfg.data.body_model_path == "/models/SMPLX_MALE.pkl" and cfg.data.body_gender == "male"
+    assert cfg.body.pose_input == "body" and cfg.body.betas is None  # null: the capture's fitted shape
+    cfg = _compose(["data=easymocap", "data.root=/cap", "body=procedural"])
+    assert cfg.data.body_model_path is None and cfg.data.body_gender == "neutral"
+
+
+@pytest.mark.parametrize(
+    ("data", "body"),
+    [("easymocap", "none"), ("easymocap", "smplx"), ("zju_mocap", "smpl"), ("synthetic_studio", "procedural")],
+)
+def test_check_config_composes(data: str, body: str):
+    """`python -m framework.data.check data=... body=...`: its own primary config with the data and body groups
+    (every option of those groups is bound to its constructor by test_every_group_option_composes)."""
+    with initialize_config_module(config_module="framework.conf", version_base="1.3"):
+        cfg = compose(config_name="check", overrides=[f"data={data}", "data.root=/somewhere", f"body={body}"])
+    job = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    assert job.data.name == data and job.body.name == (None if body == "none" else body)
+    assert job.frames == 8 and 0 < job.min_iou < 1 and 0 < job.min_inside <= 1 and job.out_dir
 
 
 def test_experiment_wins_over_defaults_and_profile_is_overridable():

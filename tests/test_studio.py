@@ -49,8 +49,8 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
     import trimesh
 
     from framework import plugins
+    from framework.data.zju.dataset import ZjuMocapDataset
     from framework.registry import BODIES
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
 
     plugins.load_plugins()
     faces = BODIES.build("procedural").faces.numpy()
@@ -93,8 +93,8 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
 def test_loaded_pose_and_root_reproduce_the_stored_vertices(seq):
     """params (poses, Rh, Th) + the body's LBS give the stored world vertices: the poses really belong to the body."""
     from framework import plugins
+    from framework.data.zju.dataset import ZjuMocapDataset
     from framework.registry import BODIES
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
 
     plugins.load_plugins()
     body = BODIES.build("procedural")
@@ -182,7 +182,7 @@ def test_interrupted_generation_resumes_without_redoing_frames(tmp_path, monkeyp
     """Killed after two frames, the sequence is not readable as complete (no annots.npy); a rerun renders only the
     two missing frames and the result is byte for byte the uninterrupted one."""
     import framework.data.studio as studio
-    from framework.data.zju_format import ZjuSequence
+    from framework.data.zju.reader import ZjuSequence
 
     settings = StudioSettings(**{**SMALL.__dict__, "resolution": 24, "views": 2, "frames": 4})
     rendered: list[int] = []

@@ -11,14 +11,9 @@ import numpy as np
 import pytest
 
 from framework.data.boundary import boundary_mask, boundary_mask_bruteforce
-from framework.data.zju_format import (
-    ZjuFormatError,
-    ZjuSequence,
-    ZjuWriter,
-    frame_number_from_path,
-    image_relpath,
-    zju_camera_names,
-)
+from framework.data.zju.layout import ZjuFormatError, frame_number_from_path, image_relpath, zju_camera_names
+from framework.data.zju.reader import ZjuSequence
+from framework.data.zju.writer import ZjuWriter
 
 
 # ------------------------------------------------------------------------------------------------ synthetic rigs
@@ -288,7 +283,7 @@ def test_boundary_band_width_and_extremes() -> None:
 @pytest.mark.parametrize("ext", [".jpg", ".png"])
 def test_truncated_images_are_refused(tmp_path: Path, ext: str):
     """OpenCV decodes a JPEG cut in half without an error (grey below the cut): the end marker check refuses it."""
-    from framework.data.zju_format import ZjuFormatError, check_complete, read_image
+    from framework.data.zju.layout import ZjuFormatError, check_complete, read_image
 
     path = tmp_path / f"img{ext}"
     cv2.imwrite(str(path), (np.random.default_rng(0).random((40, 30, 3)) * 255).astype(np.uint8))

@@ -13,10 +13,12 @@ import torch
 from test_zju_format import centroid, project, ring_cameras, write_core313_by_hand, write_toy_sequence
 
 from framework.data.boundary import boundary_mask
-from framework.data.zju_format import ZjuFormatError, ZjuSequence, ZjuWriter, check_body_compatible, zju_camera_names
+from framework.data.zju.dataset import ZjuMocapDataset
+from framework.data.zju.layout import ZjuFormatError, zju_camera_names
+from framework.data.zju.reader import ZjuSequence, check_body_compatible
+from framework.data.zju.writer import ZjuWriter
 from framework.geometry import axis_angle_to_rotmat
 from plugins.body.procedural import ProceduralBody
-from plugins.dataset.zju_mocap import ZjuMocapDataset
 
 
 @pytest.fixture(scope="module")

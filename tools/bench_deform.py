@@ -65,7 +65,7 @@ def main() -> None:
     }
     for cname, dname in (("none", "lbs"), ("latent", "lbs"), ("latent", "lbs_residual")):
         corr = REGISTRIES["corrector"].build(cname)
-        corr.bind(body.num_joints * 3)
+        corr.bind(body.num_pose_features)
         deff = REGISTRIES["deformer"].build(dname, grid_resolution=a.grid)
         deff.bind(body, bounds)
 
@@ -73,7 +73,7 @@ def main() -> None:
             params = {k: getattr(g0, k).clone().requires_grad_() for k in ("means", "quats", "log_scales", "sh",
                                                                              "opacity_logits", "latents")}  # fmt: skip
             g = g0.replace(**params)
-            out = deff(corr(g, pose.reshape(-1)), T)
+            out = deff(corr(g, body.pose_features(pose)[0]), T)
             p = out.posed
             loss = p.means.sum() + p.quats.sum() + p.log_scales.sum() + p.sh.sum() + p.opacity_logits.sum()
             loss = loss + out.aux.get("weight_std", torch.zeros(())).sum()

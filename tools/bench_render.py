@@ -32,7 +32,7 @@ def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
     body = BODIES.build(body_name)
     g = from_body_surface(body, num=num, sh_degree=3, seed=0, opacity=0.8)
     corrector = CORRECTORS.build("latent")
-    corrector.bind(body.num_joints * 3)
+    corrector.bind(body.num_pose_features)
     deformer = DEFORMERS.build("lbs", grid_resolution=32)
     lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
     deformer.bind(body, torch.stack([lo - 0.1, hi + 0.1]))

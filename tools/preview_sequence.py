@@ -15,48 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-
-def render_tile(
-    image: np.ndarray, mask: np.ndarray, uv: np.ndarray | None, label: str, crop: bool = True, side: int = 384
-) -> tuple[np.ndarray, float]:
-    """image float [H, W, 3] in [0, 1], mask [H, W] in [0, 1], uv [N, 2] pixel coords (centres at +0.5) -> a
-    side x side tile (cropped around the mask unless `crop` is false) and the share of dots inside the mask."""
-    import cv2
-
-    fg = mask >= 0.5
-    H, W = fg.shape
-    inside = float("nan")
-    if uv is not None and len(uv):
-        j, i = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        ok = (j >= 0) & (j < W) & (i >= 0) & (i < H)
-        inside = float(fg[i[ok], j[ok]].sum()) / len(uv)
-    # crop window (pixel box) around the silhouette, square, 25% margin
-    i0, i1, j0, j1 = 0, H, 0, W
-    if crop and fg.any():
-        ii, jj = np.nonzero(fg)
-        half = int(0.625 * max(np.ptp(ii), np.ptp(jj))) + 8
-        ci, cj = (ii.min() + ii.max()) // 2, (jj.min() + jj.max()) // 2
-        i0, i1, j0, j1 = max(0, ci - half), min(H, ci + half), max(0, cj - half), min(W, cj + half)
-    f = side / max(i1 - i0, j1 - j0)
-    size = (max(1, round((j1 - j0) * f)), max(1, round((i1 - i0) * f)))
-    interp = cv2.INTER_AREA if f < 1 else cv2.INTER_NEAREST
-    tile = cv2.resize((image[i0:i1, j0:j1] * 255).astype(np.uint8), size, interpolation=interp)
-    fgt = cv2.resize(fg[i0:i1, j0:j1].astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
-    tint = np.array([40, 200, 255], np.float32)
-    tile[fgt] = (0.55 * tile[fgt] + 0.45 * tint).astype(np.uint8)
-    contours, _ = cv2.findContours(fgt.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(tile, contours, -1, (255, 255, 0), 1)
-    if uv is not None and len(uv):
-        step = max(1, len(uv) // 800)
-        for (u, v), good in zip(uv[::step], ok[::step], strict=True):
-            colour = (60, 255, 60) if good and fg[int(np.floor(v)), int(np.floor(u))] else (255, 40, 40)
-            cv2.circle(tile, (int((u - j0) * f), int((v - i0) * f)), 1, colour, -1)
-    canvas = np.zeros((side, side, 3), np.uint8)
-    canvas[: tile.shape[0], : tile.shape[1]] = tile
-    text = f"{label}  dots in mask {inside:.1%}" if uv is not None else label
-    for colour, thick in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(canvas, text, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, colour, thick, cv2.LINE_AA)
-    return canvas, inside
+from framework.data.calibration_check import project
+from framework.data.overlay import render_tile
 
 
 def preview(root: str, frame: int, views: list[int] | None, out: str, downscale: float = 1.0,
@@ -64,7 +24,7 @@ def preview(root: str, frame: int, views: list[int] | None, out: str, downscale:
     """Writes the PNG; returns the in-mask share of projected vertices per view."""
     import cv2
 
-    from plugins.dataset.zju_mocap import ZjuMocapDataset
+    from framework.data.zju.dataset import ZjuMocapDataset
 
     probe = ZjuMocapDataset(root, protocol=None, train_frames=[frame], downscale=downscale, mask_dir=mask_dir,
                             cache_mb=0)  # fmt: skip
@@ -80,11 +40,8 @@ def preview(root: str, frame: int, views: list[int] | None, out: str, downscale:
         v = int(b.view[0])
         uv = None
         if verts is not None:
-            w2c = b.cameras.world_to_cam[0].double()
-            p = verts @ w2c[:3, :3].T + w2c[:3, 3]
-            p = p[p[:, 2] > 1e-6]
-            q = p @ b.cameras.K[0].double().T
-            uv = (q[:, :2] / q[:, 2:3]).numpy()
+            uv, z = project(verts.numpy(), b.cameras.K[0].double().numpy(), b.cameras.world_to_cam[0].double().numpy())
+            uv = uv[z > 1e-6]
         label = f"frame {frame} view {v} ({ds.seq.camera_dirs[v]})"
         tile, share = render_tile(b.image[0].numpy(), b.mask[0].numpy(), uv, label, crop)
         tiles.append(tile)

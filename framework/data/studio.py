@@ -91,7 +91,7 @@ def _init_worker(state: dict) -> None:
 
 
 def _render_frame(f: int) -> int:
-    from framework.data.zju_format import ZjuWriter
+    from framework.data.zju.writer import ZjuWriter
 
     s = _STATE
     verts = s["posed"][f].astype(np.float64)  # [V, 3] world
@@ -127,7 +127,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
 
     from framework.data.appearance import Appearance
     from framework.data.motions import Rig, axis_angle_to_matrix, build_sequence
-    from framework.data.zju_format import ZjuWriter, zju_camera_names
+    from framework.data.zju.layout import zju_camera_names
+    from framework.data.zju.writer import ZjuWriter
     from framework.paths import data_dir
 
     root = Path(out) if out is not None else data_dir() / "synthetic_studio" / settings.key()

@@ -24,10 +24,24 @@ class BodyModel(nn.Module, ABC):
 
     registry_name: str = ""
     joint_names: list[str]
+    # Joints whose rotations are F_a's pose input, in order (None: every joint). A body with many small joints
+    # (SMPL-X's fingers and eyes) narrows it so the corrector sees the pose that changes the clothing's appearance.
+    pose_input_joints: list[int] | None = None
 
     @property
     def num_joints(self) -> int:
         return int(self.parents.shape[0])
+
+    @property
+    def num_pose_features(self) -> int:
+        """Length of `pose_features`: 3 per pose-input joint."""
+        return 3 * (self.num_joints if self.pose_input_joints is None else len(self.pose_input_joints))
+
+    def pose_features(self, pose: Tensor) -> Tensor:
+        """pose [B, J, 3] -> [B, num_pose_features]: the axis-angle rotations of the pose-input joints, flattened."""
+        if self.pose_input_joints is not None:
+            pose = pose[:, self.pose_input_joints]
+        return pose.reshape(pose.shape[0], -1)
 
     def pose_description(self) -> str:
         """How this body names itself in a pose-shape error (subclasses add what helps the user fix the pose)."""

@@ -39,6 +39,11 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
         """[num_frames_total, J, 3] stored poses of the whole sequence (None for static scenes)."""
         return None
 
+    def fitted_betas(self) -> Tensor | None:
+        """[S] the body shape the poses were fitted with (mean over the split's frames); None when the data has none.
+        SMPL-family bodies whose config leaves `betas` null take it, so the skeleton matches the poses."""
+        return None
+
     def initial_points(self) -> Tensor | None:
         """[M, 3] points to initialise Gaussians from when there is no body (None: sample inside `bounds`)."""
         return None

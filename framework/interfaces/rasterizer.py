@@ -2,7 +2,8 @@
 
 Semantics shared by all backends (the conformance suite in `framework.testing` checks them):
 - Projection: p = R x + t (OpenCV). A Gaussian is culled (radius 0) when z <= near or z >= far.
-- Covariance: Sigma = R S S^T R^T from the normalised quaternion (wxyz) and scales; EWA splatting with the
+- Covariance: Sigma = R S S^T R^T from the normalised quaternion (wxyz; a quaternion of norm <= 1e-12, zero
+  included, counts as the identity: `framework.geometry.quat_normalize`) and scales; EWA splatting with the
   perspective Jacobian at the mean, where x/z and y/z are clamped to the field of view widened by 0.3 * tan(fov/2)
   on each side (as in 3DGS/gsplat); then 0.3 px^2 is added to the 2D covariance diagonal (low-pass filter).
 - Pixel (i, j) has its centre at (j + 0.5, i + 0.5). For a pair (Gaussian g, pixel p):
@@ -16,6 +17,9 @@ Semantics shared by all backends (the conformance suite in `framework.testing` c
 - radii: ceil of the half-extent (pixels) of the screen box holding every pixel where alpha >= 1/255 could hold;
   0 for culled Gaussians (behind the camera, degenerate covariance, or the box entirely outside the image).
 - means2d: projected centres [C, N, 2]; backends arrange for `.grad` to be populated by backward (densification).
+  Rows of culled Gaussians hold finite values (no NaN or leftover memory); compare rows where radii > 0.
+- Inputs: `check_render_inputs` (below) checks shapes with messages that name the argument; a backend calls it before
+  handing tensors to a library whose own checks are bare assertions.
 """
 
 from __future__ import annotations
@@ -44,6 +48,11 @@ class Rasterizer(ABC):
     #: Set by the registry decorator.
     registry_name: str = ""
 
+    #: False for a backend that computes in float32 whatever it is given (float64 inputs are cast down and the
+    #: results cast back, as gsplat's CUDA kernels do). The conformance suite then checks its gradients with
+    #: float32-sized finite-difference steps and tolerances instead of float64 ones.
+    supports_float64: bool = True
+
     @abstractmethod
     def render(
         self,
@@ -60,3 +69,30 @@ class Rasterizer(ABC):
         far: float = FAR_PLANE,
     ) -> RenderOutput:
         """Render every camera; differentiable in all Gaussian tensors."""
+
+
+def check_render_inputs(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, sh_degree: int
+) -> None:
+    """Shape checks with messages that name the argument, what was expected and what was found."""
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+    }
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterizer input 'means': expected shape [N, 3], found {tuple(means.shape)}.")
+    for name, (t, shape) in expected.items():
+        if tuple(t.shape) != shape:
+            raise ValueError(
+                f"rasterizer input '{name}': expected shape {list(shape)} (N = {n} from means), found "
+                f"{list(t.shape)}; pass one row per Gaussian (activated scales/opacities, wxyz quaternions)."
+            )
+    k = (sh_degree + 1) ** 2
+    if sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] < k:
+        raise ValueError(
+            f"rasterizer input 'sh': expected shape [{n}, K >= {k}, 3] for sh_degree={sh_degree}, found "
+            f"{list(sh.shape)}; lower sh_degree or allocate (sh_degree + 1)^2 coefficients."
+        )

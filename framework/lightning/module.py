@@ -17,7 +17,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from framework.build import ConfigError, build_component, node_kwargs
+from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
 from framework.guards import PSNR_MSE_FLOOR
 from framework.lightning.divergence import (
     DivergencePolicy,
@@ -46,7 +46,7 @@ class SplatModule(L.LightningModule):
         bounds = torch.tensor(data_info["bounds"], dtype=torch.float32)  # [2, 3]
         self.scene_scale = float((bounds[1] - bounds[0]).norm() / 2)
 
-        body = build_component("body", cfg["body"])
+        body = build_component("body", with_fitted_betas(cfg["body"], data_info.get("betas")))
         if body is not None and data_info.get("num_joints") not in (None, body.num_joints):
             raise ConfigError(
                 f"body '{cfg['body']['name']}' has {body.num_joints} joints but the dataset's poses have "
@@ -58,7 +58,7 @@ class SplatModule(L.LightningModule):
         deformer = build_component("deformer", cfg["deformer"])
         rasterizer = build_component("rasterizer", cfg["rasterizer"])
         if body is not None:
-            corrector.bind(body.num_joints * 3)
+            corrector.bind(body.num_pose_features)
             canonical_bounds = _padded_box(body.rest_vertices, 0.1)
             deformer.bind(body, canonical_bounds)
         else:

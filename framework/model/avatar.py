@@ -140,7 +140,7 @@ class Avatar(nn.Module):
         transforms = self.body.bone_transforms(pose, joints)[0]  # [J, 4, 4]
         if batch.root is not None:
             transforms = batch.root[0] @ transforms
-        return transforms, pose[0].reshape(-1)
+        return transforms, self.body.pose_features(pose)[0]
 
     def pose(self, batch: FrameBatch) -> tuple[Gaussians, Gaussians, dict[str, Tensor]]:
         """(canonical, posed, aux): F_a correction then skinning; cached across cameras when gradients are off."""

@@ -40,7 +40,7 @@ class MLPCorrector(Corrector):
         return num_sh_coeffs(self.sh_degree) if self.all_sh else 1
 
     def bind(self, num_pose_features: int) -> None:
-        """Build the layers for a body with `num_pose_features` pose inputs (J * 3 axis-angle)."""
+        """Build the layers for a body with `num_pose_features` pose inputs (`body.num_pose_features`)."""
         if num_pose_features < 1:
             raise ValueError(f"corrector.bind: num_pose_features must be positive, got {num_pose_features}.")
         self.num_pose_features = num_pose_features
@@ -62,7 +62,7 @@ class MLPCorrector(Corrector):
         if self.head is None:
             raise RuntimeError(
                 f"corrector '{self.registry_name}': bind(num_pose_features) was not called; call it with the body's "
-                "pose size (num_joints * 3) before the first forward."
+                "pose size (body.num_pose_features) before the first forward."
             )
         pose = pose.detach().reshape(-1)  # gradient-stopped: appearance must not bend the pose
         if pose.shape[0] != self.num_pose_features:

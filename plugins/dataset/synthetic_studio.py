@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from framework.data.zju.dataset import ZjuMocapDataset
 from framework.registry import register
-from plugins.dataset.zju_mocap import ZjuMocapDataset
 
 
 def _as_range(frames: list[int]) -> list[int]:

@@ -31,6 +31,7 @@ from framework.interfaces.rasterizer import (
     LOG_T_MIN,
     NEAR_PLANE,
     Rasterizer,
+    check_render_inputs,
 )
 from framework.registry import register
 from framework.splat.bands import row_bands
@@ -297,33 +298,6 @@ def composite(
         pix, perm = torch.sort(pix, stable=True)  # stable: pairs were in depth order within each pixel
         ent = ent.index_select(0, perm)
     return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width, kernels)
-
-
-def check_render_inputs(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, sh_degree: int
-) -> None:
-    """Shape checks with messages that name the argument, what was expected and what was found."""
-    n = means.shape[0] if means.dim() == 2 else -1
-    expected = {
-        "means": (means, (n, 3)),
-        "quats": (quats, (n, 4)),
-        "scales": (scales, (n, 3)),
-        "opacities": (opacities, (n,)),
-    }
-    if means.dim() != 2 or means.shape[1] != 3:
-        raise ValueError(f"rasterizer input 'means': expected shape [N, 3], found {tuple(means.shape)}.")
-    for name, (t, shape) in expected.items():
-        if tuple(t.shape) != shape:
-            raise ValueError(
-                f"rasterizer input '{name}': expected shape {list(shape)} (N = {n} from means), found "
-                f"{list(t.shape)}; pass one row per Gaussian (activated scales/opacities, wxyz quaternions)."
-            )
-    k = (sh_degree + 1) ** 2
-    if sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] < k:
-        raise ValueError(
-            f"rasterizer input 'sh': expected shape [{n}, K >= {k}, 3] for sh_degree={sh_degree}, found "
-            f"{list(sh.shape)}; lower sh_degree or allocate (sh_degree + 1)^2 coefficients."
-        )
 
 
 def sh_colors(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:

@@ -1,0 +1,100 @@
+"""`python -m framework.data.convert easymocap ROOT OUT`: an EasyMocap capture in the ZJU-MoCap layout, for tools
+that expect annots.npy / params/ / vertices/ (Neural Body, Animatable NeRF, our `data=zju_mocap`).
+
+What it writes (framework.data.zju.layout.ZjuWriter): images copied byte for byte under <OUT>/<camera name>/
+(renumbered 000000.. in the order of the selected frames), binary masks under mask/, annots.npy with K and D as
+stored, R, and T in millimetres, params/{i}.npy with the poses as the reader gives them (SMPL-X hand PCA expanded to
+165 values) plus "body", vertices/{i}.npy when EasyMocap wrote vertices, and easymocap_source.json saying where each
+frame came from. `data=zju_mocap data.protocol=null data.root=OUT` then reads the same samples as
+`data=easymocap data.root=ROOT` (tests/test_easymocap.py checks it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from framework.data.easymocap_layout import EasyMocapSequence
+from framework.data.sequence_dataset import frame_range
+from framework.data.zju.layout import ANNOTS
+from framework.data.zju.writer import ZjuWriter
+from framework.errors import SplatrigError, reported_as_message
+
+
+def easymocap_to_zju(
+    root: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    cameras: list[str] | None = None,
+    frames: list[int] | None = None,
+    mask_dir: str = "auto",
+    params_dir: str = "auto",
+    person_id: int | None = None,
+    smplx_model_path: str | None = None,
+    gender: str = "neutral",
+    force: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Convert; `frames` is a frame_range spec over the capture's frames ([start, end, step] or a list)."""
+    from tqdm import tqdm
+
+    seq = EasyMocapSequence(root, cameras=cameras, mask_dir=mask_dir, params_dir=params_dir, person_id=person_id,
+                            smplx_model_path=smplx_model_path, smplx_gender=gender)  # fmt: skip
+    out = Path(out)
+    if (out / ANNOTS).exists() and not force:
+        raise SplatrigError(f"{out / ANNOTS} exists: {out} already holds a sequence; pick another OUT or pass --force")
+    selected = frame_range(frames, seq.num_frames, "frames")
+    exts = {seq.image_path(f, v).suffix.lower() for f in selected[:1] for v in range(seq.num_views)}
+    if len(exts) != 1:
+        raise SplatrigError(f"{seq.root}: cameras store frames in different formats {sorted(exts)}; convert them to "
+                            f"one format first")  # fmt: skip
+    writer = ZjuWriter(out, seq.camera_names, image_ext=exts.pop())
+    cams = seq.cameras
+    writer.write_cameras(cams.K, cams.D, cams.R, cams.T_m, k_convention="opencv")
+    for i, f in enumerate(tqdm(selected, desc="convert", unit="frame", disable=not progress)):
+        masks = np.stack([seq.mask(f, v) for v in range(seq.num_views)])
+        vertices = seq.vertices(f) if seq.vertices_dir is not None else None
+        writer.copy_frame(i, [seq.image_path(f, v) for v in range(seq.num_views)], masks, seq.params(f), vertices)
+    source = {
+        "source": str(seq.root.resolve()),
+        "cameras": seq.camera_names,
+        "mask_dir": seq.mask_dir,
+        "params_dir": str(seq.params_dir.relative_to(seq.root)),
+        "frames": [seq.stems[f] for f in selected],  # frame i of OUT is the capture's frame stem frames[i]
+    }
+    tmp = out / "easymocap_source.json.tmp"
+    tmp.write_text(json.dumps(source, indent=1))
+    os.replace(tmp, out / "easymocap_source.json")
+    return writer.finish(len(selected)).parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m framework.data.convert", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="source", required=True)
+    em = sub.add_parser("easymocap", help="EasyMocap output folder -> ZJU-MoCap layout")
+    em.add_argument("root", help="the capture folder holding intri.yml, extri.yml, images/, masks, output*/smpl")
+    em.add_argument("out", help="output folder (the ZJU-MoCap-layout sequence)")
+    em.add_argument("--cameras", nargs="*", default=None, help="camera names to keep, in order (default: all)")
+    em.add_argument("--frames", type=int, nargs="*", default=None, help="START END [STEP] (end exclusive)")
+    em.add_argument("--mask-dir", default="auto", help="auto (mask/, else mask-schp/) or a folder under ROOT")
+    em.add_argument("--params-dir", default="auto", help="auto (output*/smpl) or a folder under ROOT")
+    em.add_argument("--person-id", type=int, default=None, help="whose parameters, when several people were fitted")
+    em.add_argument("--smplx-model", default=None, help="SMPL-X model file or folder (needed for 87-value poses)")
+    em.add_argument("--gender", default="neutral", help="gender of the SMPL-X file (neutral, male, female)")
+    em.add_argument("--force", action="store_true", help="overwrite an existing sequence in OUT")
+    a = ap.parse_args(argv)
+    with reported_as_message():
+        out = easymocap_to_zju(a.root, a.out, cameras=a.cameras, frames=a.frames, mask_dir=a.mask_dir,
+                               params_dir=a.params_dir, person_id=a.person_id, smplx_model_path=a.smplx_model,
+                               gender=a.gender, force=a.force)  # fmt: skip
+    print(f"wrote {out} (read it with data=zju_mocap data.protocol=null data.root={out})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
