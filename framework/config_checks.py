@@ -104,7 +104,7 @@ def check_evaluate_config(cfg: DictConfig) -> None:
     """`python -m framework.evaluate`: the checkpoint is required; splits and metrics are lists of names."""
     if OmegaConf.is_missing(cfg, "ckpt"):
         raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
-                          "ckpt=<run>/checkpoints/last.ckpt (or best.ckpt, final.ckpt).")  # fmt: skip
+                          "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt).")  # fmt: skip
     for key, example in (("splits", "[novel_view,novel_pose]"), ("metrics", "[psnr,ssim]")):
         _expect(cfg, key, lambda v: OmegaConf.is_list(v) and all(isinstance(x, str) for x in v), "a list of names",
                 f"For example {key}={example}.")  # fmt: skip

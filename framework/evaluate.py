@@ -1,12 +1,16 @@
-"""Evaluation: PSNR / SSIM / LPIPS on whole images (background included), per split, per frame.
+"""Evaluation: PSNR / SSIM / LPIPS per split and per image, on whole images (background included, the paper's
+numbers) and inside the image of the body's 3D box (the Neural Body / Animatable NeRF protocol most peers report;
+`framework.evaluation.body_box`) when the dataset knows the body's vertices.
 
 `python -m framework.evaluate ckpt=PATH [splits=[novel_view,novel_pose]] [metrics=[psnr,ssim,lpips_alex]]`
 writes `per_frame.csv` and `summary.md` and prints the summary table. Also run at the end of training.
+Summary keys: "<split>/<metric>" (whole image) and "<split>/bbox/<metric>" (body box).
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -48,6 +52,7 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
     module.eval()
     rows: list[dict[str, Any]] = []
     summary: dict[str, float] = {}
+    has_box = False
     for split in splits:
         try:
             dataset = datamodule.split(split)
@@ -55,6 +60,7 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
             print(f"[splatrig] split '{split}' skipped: {exc}", file=sys.stderr)
             continue
         values: dict[str, list[float]] = {m: [] for m in metrics}
+        values.update({f"bbox/{m}": [] for m in metrics})
         image_every = max(len(dataset) // max(save_images, 1), 1)
         for i in tqdm(range(len(dataset)), desc=f"eval {split}", unit="img", leave=False):
             batch = collate_frames([dataset[i]]).to(module.device)
@@ -67,6 +73,10 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
                 v = float(metric(rgb, batch.image)[0])
                 values[name].append(v)
                 row[name] = v
+            for name, v in _body_box_metrics(dataset, batch, rgb, metrics).items():
+                has_box = True
+                values[f"bbox/{name}"].append(v)
+                row[f"bbox_{name}"] = v
             rows.append(row)
             if i % image_every == 0 and save_images:
                 err = (rgb[0] - batch.image[0]).abs().mean(-1, keepdim=True).expand(-1, -1, 3) * 4
@@ -76,10 +86,11 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
                 if writer is not None and hasattr(writer, "add_image"):
                     writer.add_image(f"eval_{split}/render|gt|error/{i:05d}", grid.permute(2, 0, 1).cpu(), step)
         for name, vals in values.items():
-            if vals:
-                summary[f"{split}/{name}"] = float(sum(vals) / len(vals))
+            finite = [v for v in vals if math.isfinite(v)]
+            if finite:
+                summary[f"{split}/{name}"] = float(sum(finite) / len(finite))
     with atomic_path(out_dir / "per_frame.csv") as tmp, open(tmp, "w", newline="") as f:
-        fields = ["split", "frame", "view", *metrics]
+        fields = ["split", "frame", "view", *metrics, *([f"bbox_{m}" for m in metrics] if has_box else [])]
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
@@ -102,12 +113,26 @@ def _drop_metrics_that_reject(metrics: dict[str, Any], rgb: torch.Tensor, image:
             del metrics[name]
 
 
+def _body_box_metrics(dataset, batch, rgb, metrics: dict[str, Any]) -> dict[str, float]:
+    """Metrics inside the body box of this (frame, view), or {} when the dataset has no body vertices."""
+    from framework.evaluation.body_box import box_mask, box_region_metrics
+
+    box = dataset.body_box(int(batch.frame[0]))
+    if box is None:
+        return {}
+    cams = batch.cameras
+    mask = box_mask(box, cams.K[0].double().cpu().numpy(), cams.world_to_cam[0].double().cpu().numpy(), cams.width,
+                    cams.height)  # fmt: skip
+    return box_region_metrics(rgb[0], batch.image[0], mask, metrics)
+
+
 def summary_table(summary: dict[str, float], splits: list[str], metrics: list[str]) -> str:
     rows = []
     for split in splits:
-        if any(f"{split}/{m}" in summary for m in metrics):
-            rows.append((split, *[f"{summary[f'{split}/{m}']:.4f}" if f"{split}/{m}" in summary else "-"
-                                  for m in metrics]))  # fmt: skip
+        for label, prefix in ((split, f"{split}/"), (f"{split} (body box)", f"{split}/bbox/")):
+            if any(f"{prefix}{m}" in summary for m in metrics):
+                rows.append((label, *[f"{summary[f'{prefix}{m}']:.4f}" if f"{prefix}{m}" in summary else "-"
+                                      for m in metrics]))  # fmt: skip
     return format_table(rows, ("split", *metrics))
 
 

@@ -47,6 +47,12 @@ WEIGHT_VAR_MIN = 1e-12
 sqrt has an infinite slope at 0, and rigid regions have a variance of exactly 0. The std of a variance below 1e-12 is
 below 1e-6, so the term loses at most 1e-6 per joint."""
 
+WEIGHT_FIELD_NAN_NODE = 0.0
+"""Grid coordinate (in nodes) that a NaN point coordinate is looked up at by the blend-weight field's corner gather
+(`framework.rig.weight_field.WeightField.sample`): NaN would otherwise become an undefined integer index (an
+IndexError on CPU, a device-side assert on CUDA). The weights stay finite with zero gradient along that axis; the
+NaN itself still reaches the loss through the Gaussian's mean, where the divergence guard names it."""
+
 # ------------------------------------------------------------------------------------------- polar decomposition
 POLAR_TIKHONOV = 1e-3
 """Relative Tikhonov damping d = 1e-3 tr(S) of the 3x3 solve in the closed-form backward of the polar rotation

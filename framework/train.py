@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 # torch's OpenMP threads spin-wait by default; on a busy 2-core machine that starves the other thread (measured 3-10x
 # slower steps). Must be set before torch is imported; an explicit user setting wins.
@@ -57,6 +58,51 @@ def quiet_libraries() -> None:
     warnings.filterwarnings("ignore", message=".*ModelCheckpoint with manual optimization.*")
 
 
+def reset_peak_memory() -> None:
+    """Start the peak-memory counters afresh, so the fit loop's peak is not the data preparation's (Linux: writing
+    5 to /proc/self/clear_refs resets the resident-set high-water mark VmHWM)."""
+    import torch
+
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+
+
+def _peak_rss_mib() -> float:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024  # kB
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB (whole process lifetime)
+
+
+def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians: int) -> dict:
+    """Training cost for comparisons (tools/scene_adaptive.py): wall time of the fit loop (data preparation and the
+    final evaluation excluded), the peak resident memory since `reset_peak_memory` and, on CUDA, peak allocated
+    device memory."""
+    import json
+
+    import torch
+
+    stats = {
+        "fit_seconds": round(fit_seconds, 2),
+        "steps": int(steps),
+        "num_gaussians": int(num_gaussians),
+        "peak_rss_mib": round(_peak_rss_mib(), 1),
+        "cuda_peak_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1) if torch.cuda.is_available() else None,
+    }
+    path.write_text(json.dumps(stats, indent=1))
+    return stats
+
+
 def run(cfg: DictConfig) -> float | None:
     import lightning as L
     import torch
@@ -66,24 +112,26 @@ def run(cfg: DictConfig) -> float | None:
     from framework.build import build_component
     from framework.config_checks import check_train_config
     from framework.evaluate import evaluate_module
+    from framework.evaluation.run_record import metrics_from_summary, write_run_record
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
     from framework.lightning.checkpoint_io import AtomicCheckpointIO
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
+    from framework.runtime import reuse_freed_memory
+    from framework.scene.setup import command_line_overrides, prepare_scene
 
     check_train_config(cfg)
+    reuse_freed_memory()
+    started = time.perf_counter()
     load_plugins()
     quiet_libraries()
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     torch.set_float32_matmul_precision("high")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-
-    container: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
 
     def build_split(split: str):
         return build_component("dataset", cfg.data, group="data", split=split)
@@ -96,6 +144,12 @@ def run(cfg: DictConfig) -> float | None:
         seed=int(cfg.seed),
     )
     train_set = dm.train_set
+    # the scene profile and `+scene=auto` may change the config, so it is resolved and saved after them
+    scene = prepare_scene(cfg, train_set, command_line_overrides(), progress=bool(cfg.callbacks.progress_bar))
+    (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    if scene.profile is not None or scene.frozen_pose:
+        (out_dir / "scene.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(scene.summary())))
+    container: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     poses = train_set.poses()
     data_info = {
         "bounds": train_set.bounds.tolist(),
@@ -104,20 +158,18 @@ def run(cfg: DictConfig) -> float | None:
         "num_joints": None if poses is None else int(poses.shape[1]),
         "betas": None if train_set.fitted_betas() is None else train_set.fitted_betas().tolist(),
     }
+    if scene.frozen_pose:
+        data_info["frozen_pose"] = scene.frozen_pose
     module = SplatModule(container, data_info)
 
     logger = TensorBoardLogger(save_dir=str(out_dir), name="tb", version="") if cfg.logger.name else None
+    if logger is not None:
+        scene.log(logger.experiment)
     ckpt_dir = out_dir / "checkpoints"
+    # No "best" checkpoint: validation runs on a test split (novel views), and a model chosen on test data would
+    # report optimistic test numbers. We keep the model training ends with: last.ckpt (also saved periodically, to
+    # resume) and final.ckpt (blend weights baked).
     callbacks = [
-        ModelCheckpoint(
-            dirpath=ckpt_dir,
-            filename="best",
-            monitor="val/psnr",
-            mode="max",
-            save_last=True,
-            save_top_k=1,
-            auto_insert_metric_name=False,
-        ),  # fmt: skip
         ModelCheckpoint(
             dirpath=ckpt_dir,
             filename="last",
@@ -152,8 +204,14 @@ def run(cfg: DictConfig) -> float | None:
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path is not None and not Path(ckpt_path).is_file():
         raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
-                            f"checkpoints/last.ckpt (or best.ckpt).")  # fmt: skip
+                            f"checkpoints/last.ckpt.")  # fmt: skip
+    reset_peak_memory()
+    fit_started, fit_cpu = time.perf_counter(), time.process_time()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    train_seconds, train_cpu_seconds = time.perf_counter() - fit_started, time.process_time() - fit_cpu
+    train_stats = write_train_stats(out_dir / "train_stats.json", train_seconds, trainer.global_step,
+                                    module.avatar.gaussians.num)  # fmt: skip
+    trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
     if module.bake_weights():
         trainer.save_checkpoint(ckpt_dir / "final.ckpt", weights_only=False)
@@ -162,16 +220,36 @@ def run(cfg: DictConfig) -> float | None:
     if cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False):
         result = evaluate_module(module, dm, list(cfg.eval.splits), list(cfg.eval.metrics), out_dir / "eval",
                                  logger=logger, step=trainer.global_step)  # fmt: skip
+    config_name, overrides = _hydra_job()
+    record = write_run_record(
+        out_dir, experiment=str(cfg.task_name), config_name=config_name, overrides=overrides,
+        seed=int(cfg.seed), profile=str(cfg.profile.name), data=str(cfg.data.name), steps=int(trainer.global_step),
+        max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
+        train_cpu_seconds=round(train_cpu_seconds, 2),
+        run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
+        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"],
+        metrics=metrics_from_summary(result),
+    )  # fmt: skip
     print(f"\n[splatrig] results: {out_dir}")
     print(f"[splatrig]   checkpoints: {ckpt_dir}  (resume with ckpt_path={ckpt_dir / 'last.ckpt'})")
     print(f"[splatrig]   tensorboard: tensorboard --logdir {out_dir / 'tb'}")
     if result:
-        print(f"[splatrig]   metrics: {out_dir / 'eval'}")
+        print(f"[splatrig]   metrics: {out_dir / 'eval'}, {record}")
     metric = str(cfg.metric)
     if metric in result:
         return float(result[metric])
     logged = trainer.callback_metrics.get(metric)
     return None if logged is None else float(logged)
+
+
+def _hydra_job() -> tuple[str | None, list[str]]:
+    """(primary config name, this job's overrides) as Hydra knows them; (None, []) outside a Hydra run."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None, []
+    hc = HydraConfig.get()
+    return hc.job.config_name, list(hc.overrides.task)
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")

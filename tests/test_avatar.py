@@ -107,6 +107,44 @@ def test_baked_weights_reproduce_the_trained_render(body):
     torch.testing.assert_close(after, before, atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_inactive_sh_bands_are_skipped_without_changing_render_or_gradients(body, degree):
+    """Below the full SH degree the avatar poses only the active bands; the reference poses all of them (rotating the
+    inactive ones too) and lets the rasterizer ignore them: same image, same gradient for every parameter."""
+    g = from_body_surface(body, num=300, sh_degree=3, seed=0, opacity=0.6)
+    g.sh[:, 1:] = 0.3 * torch.randn_like(g.sh[:, 1:])
+    corr = CORRECTORS.build("latent", all_sh=True)
+    corr.bind(body.num_joints * 3)
+    deform = DEFORMERS.build("lbs_residual", grid_resolution=16)
+    lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
+    deform.bind(body, torch.stack([lo - 0.1, hi + 0.1]))
+    with torch.no_grad():
+        for m in (corr.head, deform.mlp[-1]):
+            m.weight.normal_(std=0.05)
+    avatar = Avatar(GaussianParams(g), RASTERIZERS.build("torch_ref"), corr, deform, body)
+    batch = _batch(body, pose=0.5 * torch.randn(1, body.num_joints, 3, generator=torch.Generator().manual_seed(3)))
+
+    def render_and_grads(skip: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        avatar.zero_grad(set_to_none=True)
+        if skip:
+            rgb = avatar(batch, sh_degree=degree).render.rgb
+        else:
+            _, posed, _ = avatar.pose(batch)  # all 16 coefficients, every band rotated
+            assert posed.sh.shape[1] == 16
+            rgb = avatar.rasterizer.render(posed.means, posed.quats, posed.scales, posed.opacities, posed.sh,
+                                           batch.cameras, sh_degree=degree).rgb  # fmt: skip
+        rgb.square().sum().backward()
+        return rgb.detach(), {k: p.grad.clone() for k, p in avatar.named_parameters() if p.grad is not None}
+
+    rgb_ref, grads_ref = render_and_grads(skip=False)
+    rgb, grads = render_and_grads(skip=True)
+    assert rgb_ref.abs().max() > 0.1
+    torch.testing.assert_close(rgb, rgb_ref, atol=1e-5, rtol=0)
+    assert grads.keys() == grads_ref.keys()
+    for k in grads:
+        torch.testing.assert_close(grads[k], grads_ref[k], atol=1e-4, rtol=1e-4, msg=k)
+
+
 def test_posed_gaussians_are_reused_for_novel_views_of_one_pose(body):
     """A second camera on the same pose reuses the posed Gaussians (the cache is keyed on the pose, not the camera)
     and still renders what that camera sees: the direct render of the posed Gaussians from it."""
@@ -143,6 +181,8 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     module = Module()
     module.avatar = avatar
     module.log = lambda *a, **k: None
+    stage2_started: list[int] = []
+    module.begin_stage2 = stage2_started.append  # the module restarts its densifier schedule there
     switch = StageSwitch(stage1_steps=10)
 
     def grads_after_step(step: int) -> dict[str, bool]:
@@ -167,3 +207,4 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     stage2 = grads_after_step(10)
     assert stage2 == {"gaussians": True, "pose": True, "joints": True, "corrector": True, "weight_mlp": True,
                       "latents": True}  # fmt: skip
+    assert stage2_started == [10]

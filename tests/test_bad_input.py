@@ -100,6 +100,8 @@ CASES = [
          ["ckpt={ckpt}", "motion={motion_nan}"]),
     Case("render_motion_no_poses", "render", "`motion=` an .npz without `poses`",
          ["ckpt={ckpt}", "motion={motion_nokey}"]),
+    Case("render_motion_truncated", "render", "`motion=` an .npz cut in half",
+         ["ckpt={ckpt}", "motion={motion_cut}"]),
     Case("render_camera_index", "render", "`cameras=fixed camera_index=99`",
          ["ckpt={ckpt}", "motion=train", "cameras=fixed", "camera_index=99"]),
     Case("render_resolution_0", "render", "`resolution=0`", ["ckpt={ckpt}", "resolution=0"]),
@@ -203,7 +205,9 @@ def world(tmp_path_factory: pytest.TempPathFactory):
         poses[1, 4, 2] = np.nan
         np.savez(root / "motion_nan.npz", poses=poses)
         np.savez(root / "motion_nokey.npz", rotations=np.zeros((3, 17, 3), np.float32))
-        for name in ("truncated", "garbage", "foreign", "motion_joints", "motion_nan", "motion_nokey"):
+        motion = (root / "motion_joints.npz").read_bytes()
+        (root / "motion_cut.npz").write_bytes(motion[: len(motion) // 2])
+        for name in ("truncated", "garbage", "foreign", "motion_joints", "motion_nan", "motion_nokey", "motion_cut"):
             paths[name] = next(root.glob(f"{name}.*"))
         yield paths
 

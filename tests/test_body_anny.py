@@ -207,7 +207,7 @@ def test_fold_skeleton_maps_to_nearest_kept_ancestor():
     assert kept == [0, 1, 3]
     assert red_parents == [-1, 0, 1]
     assert to_red == [0, 1, 1, 2, 2, 0]
-    with pytest.raises(ValueError, match="not in the Anny rig"):
+    with pytest.raises(ValueError, match="not in the rig"):
         fold_skeleton(labels, parents, ("root", "zz"))
 
 

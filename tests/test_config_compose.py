@@ -30,7 +30,9 @@ def _options(group: str) -> list[str]:
 def _groups() -> list[str]:
     root = resources.files("framework.conf")
     return sorted(
-        p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("_") and p.name != "experiment"
+        p.name
+        for p in root.iterdir()
+        if p.is_dir() and not p.name.startswith("_") and p.name not in ("experiment", "scene")  # appended with +
     )
 
 
@@ -94,6 +96,15 @@ def test_every_experiment_composes(experiment: str):
     cfg = _compose([f"+experiment={experiment}"])
     assert cfg.task_name == experiment
     _check_components(cfg)
+
+
+@pytest.mark.parametrize("experiment", ["paper_full", "static_fit"])
+def test_scene_auto_composes_with_an_experiment_and_changes_only_the_scene_node(experiment: str):
+    """`+scene=auto` is appended like an experiment; what it changes in the model is decided at run time."""
+    plain = OmegaConf.to_container(_compose([f"+experiment={experiment}"]))
+    auto = OmegaConf.to_container(_compose([f"+experiment={experiment}", "+scene=auto"]))
+    assert {k for k in set(auto) | set(plain) if auto.get(k) != plain.get(k)} - {"_choices"} == {"scene"}
+    assert auto["scene"]["auto"] and auto["scene"]["profile"] and "thresholds" in auto["scene"]
 
 
 def test_ablation_rows_differ_from_paper_full_in_one_place():

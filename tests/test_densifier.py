@@ -192,11 +192,13 @@ def test_opacity_reset_schedule():
     dens = DENSIFIERS.build("paper", refine_stop=30_000)
     state = dens.initialize_state()
     resets = [s for s in range(0, 30_000, 100) if dens.is_reset_step(s, state)]
-    assert resets == [3000, 9000, 15000, 21000, 27000]
-    dens.restart_schedule(state, 5000)  # stage 2 starts at 5000
-    assert [s for s in range(0, 30_000, 100) if dens.is_reset_step(s, state)] == [8000, 14000, 20000, 26000]
-    offset = DENSIFIERS.build("paper", refine_stop=20_000, schedule_offset=5000)
-    assert [s for s in range(0, 30_000, 100) if offset.is_reset_step(s, offset.initialize_state())] == [8000, 14000]
+    assert resets == [3000, 9000, 15000, 21000, 27000]  # a single-stage run: 3000, then every 6000
+    dens.restart_schedule(state, 5000)  # stage 2 starts at 5000: the paper's "every 6000 iterations in stage 2"
+    assert [s for s in range(0, 30_000, 100) if dens.is_reset_step(s, state)] == [3000, 11000, 17000, 23000, 29000]
+    short = DENSIFIERS.build("paper", refine_stop=15_000)  # resets end with densification
+    state = short.initialize_state()
+    short.restart_schedule(state, 5000)
+    assert [s for s in range(0, 30_000, 100) if short.is_reset_step(s, state)] == [3000, 11000]
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)

@@ -228,6 +228,36 @@ def test_all_zero_weights_collapse_to_the_stretch_floor() -> None:
     torch.testing.assert_close(quat_to_rotmat(posed.quats), quat_to_rotmat(g.quats), atol=1e-6, rtol=0)
 
 
+def test_weight_lookup_at_non_finite_and_far_points() -> None:
+    """The blend-weight field's corner gather at points far outside its box, at +-inf and at NaN: each takes the
+    values and gradients of torch's grid_sample (border padding, float64) at the point it clamps to (zero gradient
+    along the clamped axes), a NaN coordinate clamping to the box's low face instead of gathering at an undefined
+    index (the NaN still reaches the loss through the Gaussian's mean)."""
+    import torch.nn.functional as F
+
+    from framework.rig.weight_field import WeightField
+
+    g = torch.Generator().manual_seed(3)
+    vol = torch.rand(4, 3, 4, 5, generator=g) + 0.1  # [J, D, H, W]
+    bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 2.0, 1.0]])
+    field = WeightField(vol, bounds)
+    inf, nan = float("inf"), float("nan")
+    x = torch.tensor([[1e30, -1e30, 0.3], [inf, 0.2, -inf], [-3e38, 3e38, 3e38], [nan, 0.5, 0.5]], requires_grad=True)
+    w = field.sample(x)
+    assert torch.isfinite(w).all() and torch.allclose(w.sum(-1), torch.ones(4))
+    proj = torch.arange(1.0, 5.0)
+    (w * proj).sum().backward()
+    lo, hi = bounds.double()
+    edge = torch.maximum(torch.minimum(x.detach().double().nan_to_num(nan=-inf), hi), lo).requires_grad_()
+    ref = F.grid_sample(vol.double()[None], (2 * (edge - lo) / (hi - lo) - 1)[None, None, None], mode="bilinear",
+                        padding_mode="border", align_corners=True)[0, :, 0, 0].t()  # fmt: skip
+    ref = ref / ref.sum(-1, keepdim=True)
+    (ref * proj.double()).sum().backward()
+    torch.testing.assert_close(w.double(), ref.detach(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(x.grad.double(), edge.grad, atol=1e-5, rtol=1e-5)
+    assert torch.equal(x.grad[:, 0], torch.zeros(4)) and x.grad[0, 2] != 0
+
+
 # --------------------------------------------------------------------------------------------------- SH rotation
 @st.composite
 def sh_cases(draw: st.DrawFn):

@@ -51,6 +51,19 @@ def test_newton_forward_matches_svd_forward(kind):
     assert torch.allclose(polar_rotation_values(A, "newton"), polar_rotation_values(A, "svd"), atol=1e-10)
 
 
+def test_float32_newton_is_within_float32_rounding_of_float64_svd():
+    """Training default: float32 inputs iterate in float32; the float64 SVD of the same matrices is the reference."""
+    A = lbs_blends(2000, joints=6, max_angle=2.5).float()
+    ref = svd_rotation(A.double())
+    r32 = polar_rotation_values(A)
+    assert r32.dtype == torch.float32
+    assert (r32.double() - ref).abs().max() < 1e-6
+    r64 = polar_rotation_values(A, dtype=torch.float64)  # float64 iteration, float32 result
+    assert (r64.double() - ref).abs().max() < 1e-7
+    with pytest.raises(ValueError, match="dtype"):
+        polar_rotation_values(A, dtype=torch.float16)
+
+
 def test_reflection_gives_closest_proper_rotation():
     A = torch.randn(200, 3, 3, dtype=D64)
     A[:, :, 0] *= torch.where(torch.linalg.det(A) > 0, -1.0, 1.0).to(D64)[:, None]  # make every det negative

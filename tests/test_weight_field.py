@@ -64,6 +64,35 @@ def test_grid_sampling_nodes_sum_and_border(tmp_path):
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
+def test_sampling_matches_grid_sample_values_and_gradients():
+    """The corner-gather lookup against torch's grid_sample (border padding, align_corners) on a random,
+    non-cubic volume, in float64, with points inside, outside and exactly on the box faces."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(0)
+    J, D, H, W = 4, 5, 6, 7
+    vol = (torch.rand(J, D, H, W, generator=g) + 0.1).double()  # float32 values: the field stores float32
+    bounds = torch.tensor([[-1.0, -2.0, 0.5], [2.0, 1.0, 3.0]], dtype=torch.float64)
+    field = WeightField(vol, bounds).double()
+    lo, hi = bounds
+    x = lo + (hi - lo) * (torch.rand(300, 3, generator=g, dtype=torch.float64) * 1.4 - 0.2)
+    x[:10, 0] = hi[0]  # on the faces: both sides of the clamp
+    x[10:20, 2] = lo[2]
+    x.requires_grad_()
+    ref_x = x.detach().clone().requires_grad_()
+    gn = 2.0 * (ref_x - lo) / (hi - lo) - 1.0
+    ref = F.grid_sample(vol[None], gn[None, None, None], mode="bilinear", padding_mode="border", align_corners=True)
+    ref = ref[0, :, 0, 0].t()
+    ref = ref / ref.sum(-1, keepdim=True)
+    got = field.sample(x)
+    assert torch.allclose(got, ref, atol=1e-12)
+    proj = torch.rand(J, generator=g, dtype=torch.float64)
+    (got * proj).sum().backward()
+    (ref * proj).sum().backward()
+    assert torch.allclose(x.grad, ref_x.grad, atol=1e-10)
+    assert field.volume.shape == (1, J, D, H, W) and torch.equal(field.volume[0].double(), vol)
+
+
 def test_cache_roundtrip(tmp_path):
     v, f, w = small_mesh()
     bounds = np.array([[-1.5, -1.0, -2.0], [1.5, 1.0, 2.0]])

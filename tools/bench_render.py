@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import torch
 
 from framework.cameras import orbit_cameras
 from framework.model.avatar import Avatar, GaussianParams
+from framework.model.frame_timing import time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.types import FrameBatch
@@ -48,24 +47,6 @@ def trained_avatar(ckpt: str, device: str) -> Avatar:
     return module.avatar.to(device)
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def time_frames(fn, warmup: int, repeats: int, device: str) -> float:
-    for i in range(warmup):
-        fn(i)
-    _sync(device)
-    times = []
-    for i in range(repeats):
-        t = time.perf_counter()
-        fn(warmup + i)
-        _sync(device)
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ckpt", default=None)
@@ -82,7 +63,7 @@ def main() -> None:
     avatar = trained_avatar(args.ckpt, args.device) if args.ckpt else synthetic_avatar(args.body, args.num, args.device)
     avatar.eval()
     body = avatar.body
-    J = body.num_joints
+    J = body.num_input_joints
     center = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
     cams = orbit_cameras(center.cpu(), 3.0, 0.0, 16, args.resolution, args.resolution, fov_deg=40).to(args.device)
     gen = torch.Generator().manual_seed(0)

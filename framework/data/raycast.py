@@ -200,7 +200,9 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Shading:
-    """Lambertian shading with one directional light: colour * (ambient + diffuse * max(0, n.l) * visible).
+    """Lambertian shading with one directional light: colour * (ambient + diffuse * max(0, n.l) * visible), plus an
+    optional white Blinn-Phong highlight specular * max(0, n.h)^shininess * visible (h halfway between the light and
+    the viewer): the one view-dependent term, for glossy cloth.
 
     `direction` points from the surface towards the light. `shadows` casts a shadow ray per shaded sample, so the
     mesh darkens itself where it blocks the light (used for pose-dependent self-shadows).
@@ -212,6 +214,8 @@ class Shading:
     shadows: bool = False
     smooth_normals: bool = True
     shadow_bias: float = 1e-3  # ray offset along the normal, in scene units
+    specular: float = 0.0  # 0: matte (view-independent)
+    shininess: float = 16.0
 
 
 @dataclass
@@ -305,15 +309,21 @@ def render(
             light = np.asarray(shading.direction, np.float64)
             light = light / np.linalg.norm(light)
             ndl = np.clip(n @ light, 0.0, None)
+            vis = np.ones(len(ndl))
             if shading.shadows:
                 lit = ndl > 0
                 if lit.any():
                     o = pts[lit] + shading.shadow_bias * fn[lit]
                     occ = caster.occluded(o, np.broadcast_to(light, o.shape))
-                    vis = np.ones(len(ndl))
                     vis[np.flatnonzero(lit)[occ]] = 0.0
                     ndl = ndl * vis
             c = c * (shading.ambient + shading.diffuse * ndl)[:, None]
+            if shading.specular > 0:
+                view = -dirs[hit] / np.linalg.norm(dirs[hit], axis=1, keepdims=True)  # towards the camera
+                half = view + light
+                half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-20)
+                ndh = np.clip(np.einsum("nc,nc->n", n, half), 0.0, None) * (ndl > 0)
+                c = c + (shading.specular * ndh**shading.shininess)[:, None]
         col[hit] = np.clip(c, 0.0, 1.0)
         return col
 

@@ -487,3 +487,8 @@ class SequenceDataset(MultiViewDataset):
     def vertices(self, frame: int) -> torch.Tensor:
         """[V, 3] stored posed world vertices of `frame` (for checks and previews)."""
         return torch.from_numpy(self.seq.vertices(frame))
+
+    def body_box(self, frame: int) -> np.ndarray | None:
+        from framework.evaluation.body_box import frame_box
+
+        return frame_box(self.seq.vertices(frame)) if self.has_vertices() else None

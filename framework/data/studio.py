@@ -8,6 +8,8 @@ interrupted one resumes: the frames it finished are kept):
   1.3 m, all looking at the body's centre (OpenCV K/R/T, D = 0), like ZJU-MoCap's capture dome.
 - Motion (`framework.data.motions`): the anny walk cycle, arm raises, squats and kicks for training, and a held-out
   turn-and-reach motion for novel-pose evaluation; each frame's pose is stored with the body-model name.
+  `motion=idle` is a near-static capture (a slight nod and arm sway), `motion=arms` moves only the arms.
+- Look (`LOOKS`): `default` is matte cloth; `glossy` adds a view-dependent highlight and deeper pose-dependent folds.
 - Appearance (`framework.data.appearance`): striped, printed and seamed clothing as a solid texture on the rest-pose
   surface, wrinkle shading that follows joint flexion, and self-shadows from a fixed light (Embree shadow rays).
 - Ground truth by ray casting the linear-blend-skinned mesh (`framework.data.raycast`): images, masks, posed
@@ -15,6 +17,18 @@ interrupted one resumes: the frames it finished are kept):
   novel-pose (held-out) frames.
 
 The subject stands on the floor z = 0 (each frame's Th lifts the lowest posed vertex to 0) and turns with Rh.
+
+Capture imperfections (all off by default; conf/data/synthetic_studio_realistic.yaml turns them on for Table 4):
+- `pose_noise_deg`, `root_noise_m`: the stored params (and the fitted mesh in vertices/) carry EasyMocap-like
+  fitting noise (`framework.data.imperfections`); the images are rendered from the clean pose.
+- `mask_error_px`: mask_cihp/ holds parser-like masks with boundary errors of up to that many pixels (the loader
+  reads mask_cihp/ first, as Animatable NeRF does); mask/ keeps the exact masks, the images stay exact.
+- `garment`: "skirt" adds a loose skirt driven by the pelvis with lag and swing (`framework.data.garment`), rendered
+  and in the masks but not in the body fit (vertices/), as real clothing is.
+- `subject_height_fraction`: framing like ZJU-MoCap's; the camera ring's radius is chosen so the rest-pose body is
+  this fraction of the image height (`radius` is then ignored).
+With pose noise or a garment, ground_truth/ holds what the annotations do not: the clean params and body vertices
+(params/, vertices/) and the skirt's vertices (garment/, plus garment_rest.npy and garment_faces.npy).
 """
 
 from __future__ import annotations
@@ -26,16 +40,27 @@ import multiprocessing as mp
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from framework.atomic import atomic_write_text
 from framework.data import raycast
+from framework.data.garment import skirt_albedo
 
 STUDIO_VERSION = 2
 LIGHT = raycast.Shading(direction=(0.45, -0.55, 0.7), ambient=0.32, diffuse=0.78, shadows=True)
+GARMENTS = ("none", "skirt")
+IMPERFECTION_DEFAULTS = {"pose_noise_deg": 0.0, "root_noise_m": 0.0, "mask_error_px": 0.0, "garment": "none",
+                         "garment_lag": 0.5, "subject_height_fraction": None}  # fmt: skip
+#: looks (`StudioSettings.look`): shading plus the strength of the pose-dependent wrinkle shading (fine bands, broad
+#: fold shade). `default` is matte (Lambertian) cloth; `glossy` adds a broad white highlight that moves with the
+#: viewer (view-dependent colour) and deeper folds (stronger pose-dependent shading).
+LOOKS: dict[str, tuple[raycast.Shading, float, float]] = {
+    "default": (LIGHT, 0.55, 0.35),
+    "glossy": (replace(LIGHT, specular=0.45, shininess=12.0), 0.8, 0.55),
+}
 
 
 @dataclass(frozen=True)
@@ -51,10 +76,48 @@ class StudioSettings:
     fov_deg: float = 45.0
     image_ext: str = ".jpg"
     jpeg_quality: int = 95
+    # capture imperfections (module docstring); at these defaults the output is what it was before they existed
+    pose_noise_deg: float = 0.0
+    root_noise_m: float = 0.0
+    mask_error_px: float = 0.0
+    garment: str = "none"  # "none" | "skirt"
+    garment_lag: float = 0.5
+    subject_height_fraction: float | None = None
+    motion: str = "default"  # a program of framework.data.motions.PROGRAMS: default | idle | arms
+    look: str = "default"  # a key of LOOKS: default (matte) | glossy
+
+    def __post_init__(self) -> None:
+        from framework.data.motions import PROGRAMS
+
+        if self.garment not in GARMENTS:
+            raise ValueError(f"studio: garment must be one of {GARMENTS}, got '{self.garment}'.")
+        if self.subject_height_fraction is not None and not 0.05 < self.subject_height_fraction <= 1.5:
+            raise ValueError(
+                f"studio: subject_height_fraction must be in (0.05, 1.5] (the body's share of the image height), got "
+                f"{self.subject_height_fraction}."
+            )
+        for name in ("pose_noise_deg", "root_noise_m", "mask_error_px"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"studio: {name} must be >= 0, got {getattr(self, name)}.")
+        if self.motion not in PROGRAMS:
+            raise ValueError(f"studio: motion '{self.motion}' is not one of {sorted(PROGRAMS)}.")
+        if self.look not in LOOKS:
+            raise ValueError(f"studio: look '{self.look}' is not one of {sorted(LOOKS)}.")
 
     def key(self) -> str:
-        blob = json.dumps({"version": STUDIO_VERSION, **asdict(self)}, sort_keys=True)
+        """Hash of the settings; knobs left at their defaults are left out, so sequences rendered before a knob
+        existed keep their key (and their cache)."""
+        values = asdict(self)
+        for name, default in {**IMPERFECTION_DEFAULTS, "motion": "default", "look": "default"}.items():
+            if values[name] == default:
+                del values[name]
+        blob = json.dumps({"version": STUDIO_VERSION, **values}, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:12]
+
+    @property
+    def has_ground_truth(self) -> bool:
+        """Whether the stored annotations differ from what was rendered (then ground_truth/ is written)."""
+        return self.pose_noise_deg > 0 or self.root_noise_m > 0 or self.garment != "none"
 
 
 def build_body(name: str, skeleton: str = "reduced"):
@@ -67,16 +130,25 @@ def build_body(name: str, skeleton: str = "reduced"):
     return BODIES.build(name, **kwargs)
 
 
-def camera_ring(settings: StudioSettings, target: np.ndarray) -> list[raycast.Camera]:
+def ring_radius(settings: StudioSettings, subject_height: float) -> float:
+    """The ring radius: `radius`, or the distance at which a subject of this height fills `subject_height_fraction`
+    of the image height (pinhole: fraction = height / (2 r tan(fov / 2)))."""
+    if settings.subject_height_fraction is None:
+        return settings.radius
+    return subject_height / (2.0 * settings.subject_height_fraction * np.tan(np.deg2rad(settings.fov_deg) / 2))
+
+
+def camera_ring(settings: StudioSettings, target: np.ndarray, radius: float | None = None) -> list[raycast.Camera]:
     """`views` cameras evenly spaced on a ring (seeded azimuth offset), heights alternating 1.1 / 1.5 m."""
     rng = np.random.default_rng(settings.seed + 7)
     az0 = rng.uniform(0, 2 * np.pi)
     K = raycast.intrinsics(settings.fov_deg, settings.resolution, settings.resolution)
+    radius = settings.radius if radius is None else radius
     cams = []
     for i in range(settings.views):
         az = az0 + 2 * np.pi * i / settings.views
         h = 1.1 + 0.4 * (i % 2)
-        eye = np.array([settings.radius * np.cos(az), settings.radius * np.sin(az), h])
+        eye = np.array([radius * np.cos(az), radius * np.sin(az), h])
         cams.append(raycast.Camera(K, raycast.look_at(eye, target), settings.resolution, settings.resolution))
     return cams
 
@@ -91,31 +163,48 @@ def _init_worker(state: dict) -> None:
 
 
 def _render_frame(f: int) -> int:
+    from framework.data.imperfections import parser_like_mask
     from framework.data.zju.writer import ZjuWriter
 
     s = _STATE
-    verts = s["posed"][f].astype(np.float64)  # [V, 3] world
+    verts = s["posed"][f].astype(np.float64)  # [V, 3] world, the clean pose
     faces = s["faces"]
     app = s["appearance"]
     wrinkle = s["wrinkles"][f]  # [V]
     rest = app.rest
+    skirt = s["skirt"]
+    num_body_faces = len(faces)
+    if skirt is not None:  # one mesh: body faces first, then the skirt's
+        verts = np.concatenate([verts, s["skirt_posed"][f]])
+        faces = np.concatenate([faces, skirt.faces + len(rest)])
 
     def color(face_ids: np.ndarray, bary: np.ndarray, _points: np.ndarray) -> np.ndarray:
-        tri = faces[face_ids]  # [N, 3]
-        rest_pts = np.einsum("nk,nkc->nc", bary, rest[tri])
-        m = np.einsum("nk,nk->n", bary, wrinkle[tri])
-        return app.albedo(face_ids, rest_pts) * m[:, None]
+        out = np.empty((len(face_ids), 3), np.float32)
+        body = face_ids < num_body_faces
+        tri = faces[face_ids[body]]  # [N, 3]
+        rest_pts = np.einsum("nk,nkc->nc", bary[body], rest[tri])
+        m = np.einsum("nk,nk->n", bary[body], wrinkle[tri])
+        out[body] = app.albedo(face_ids[body], rest_pts) * m[:, None]
+        if skirt is not None and not body.all():
+            tri = skirt.faces[face_ids[~body] - num_body_faces]
+            out[~body] = skirt_albedo(np.einsum("nk,nkc->nc", bary[~body], skirt.rest[tri]))
+        return out
 
     caster = raycast.RayCaster(verts, faces)
     normals = raycast.vertex_normals(verts, faces)
-    imgs, masks = [], []
-    for cam in s["cameras"]:
-        r = raycast.render(verts, faces, cam, color_fn=color, shading=LIGHT, normals=normals,
+    imgs, masks, parsed = [], [], []
+    for v, cam in enumerate(s["cameras"]):
+        r = raycast.render(verts, faces, cam, color_fn=color, shading=s["shading"], normals=normals,
                            supersample=s["supersample"], caster=caster)  # fmt: skip
         imgs.append(r.rgb)
         masks.append(r.mask)
+        if s["mask_error_px"] > 0:
+            rng = np.random.default_rng([s["seed"], f, v, 31])
+            parsed.append(parser_like_mask(r.mask, s["mask_error_px"], rng))
     writer = ZjuWriter(s["root"], s["camera_names"], image_ext=s["image_ext"], jpeg_quality=s["jpeg_quality"])
-    writer.write_frame(f, np.stack(imgs), np.stack(masks), params=s["params"][f], vertices=s["posed"][f])
+    if parsed:  # before write_frame, which marks the frame done
+        writer.write_masks(f, np.stack(parsed), "mask_cihp")
+    writer.write_frame(f, np.stack(imgs), np.stack(masks), params=s["params"][f], vertices=s["fitted"][f])
     return f
 
 
@@ -126,7 +215,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     from tqdm import tqdm
 
     from framework.data.appearance import Appearance
-    from framework.data.motions import Rig, axis_angle_to_matrix, build_sequence
+    from framework.data.motions import PROGRAMS, Rig, axis_angle_to_matrix, build_sequence
     from framework.data.zju.layout import zju_camera_names
     from framework.data.zju.writer import ZjuWriter
     from framework.paths import data_dir
@@ -153,7 +242,8 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     t0 = time.perf_counter()
     body = build_body(settings.body, settings.skeleton)
     rig = Rig.from_body(body)
-    seq = build_sequence(rig, settings.frames, seed=settings.seed)
+    seq = build_sequence(rig, settings.frames, seed=settings.seed, program=PROGRAMS[settings.motion])
+    shading, wrinkle_strength, broad_strength = LOOKS[settings.look]
     F = settings.frames
     with torch.no_grad():
         local = body.posed_vertices(torch.as_tensor(seq.poses)).double().numpy()  # [F, V, 3]
@@ -163,14 +253,19 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     Th[:, 2] = -rotated[:, :, 2].min(1)  # stand on the floor
     posed = (rotated + Th[:, None]).astype(np.float32)  # [F, V, 3]
     faces = body.faces.cpu().numpy().astype(np.int64)
-    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed)
+    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed,
+                     wrinkle_strength=wrinkle_strength, broad_strength=broad_strength)  # fmt: skip
     wrinkles = np.stack([app.wrinkle_multiplier(p) for p in seq.poses])  # [F, V]
     rest_h = float(body.rest_vertices[:, 2].max() - body.rest_vertices[:, 2].min())
-    target = np.array([0.0, 0.0, 0.55 * rest_h])
-    cams = camera_ring(settings, target)
+    framed = settings.subject_height_fraction is not None
+    target = np.array([0.0, 0.0, (0.5 if framed else 0.55) * rest_h])
+    radius = ring_radius(settings, rest_h)
+    cams = camera_ring(settings, target, radius)
     names = zju_camera_names(settings.views)
+    skirt, skirt_posed = _skirt(settings, body, rig, seq.poses, Rroot, Th)
+    fit_poses, fit_Th, fitted = _fitted(settings, body, seq.poses, Rroot, Th, posed)
     params = [
-        {"poses": seq.poses[f].reshape(1, -1), "Rh": seq.Rh[f].reshape(1, 3), "Th": Th[f].reshape(1, 3),
+        {"poses": fit_poses[f].reshape(1, -1), "Rh": seq.Rh[f].reshape(1, 3), "Th": fit_Th[f].reshape(1, 3),
          "shapes": np.zeros((1, 10), np.float32), "body": settings.body, "skeleton": settings.skeleton}
         for f in range(F)
     ]  # fmt: skip
@@ -183,7 +278,9 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     writer.write_cameras(K, None, R, T)
     state = {"posed": posed, "faces": faces, "appearance": app, "wrinkles": wrinkles, "cameras": cams,
              "camera_names": names, "params": params, "root": str(root), "supersample": settings.supersample,
-             "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality}  # fmt: skip
+             "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality, "fitted": fitted,
+             "skirt": skirt, "skirt_posed": skirt_posed, "mask_error_px": settings.mask_error_px,
+             "seed": settings.seed, "shading": shading}  # fmt: skip
     todo = [f for f in range(F) if not writer.frame_done(f)]  # frames an interrupted run finished are kept
     bar = tqdm(total=F, initial=F - len(todo), desc=f"studio {settings.resolution}px x {settings.views} views",
                unit="frame", disable=not progress)  # fmt: skip
@@ -198,6 +295,9 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
             _render_frame(f)
             bar.update(1)
     bar.close()
+    if settings.has_ground_truth:
+        clean = [{**p, "poses": seq.poses[f].reshape(1, -1), "Th": Th[f].reshape(1, 3)} for f, p in enumerate(params)]
+        _write_ground_truth(root, writer, clean, posed, skirt, skirt_posed)
     meta = {
         "key": settings.key(),
         "version": STUDIO_VERSION,
@@ -208,13 +308,74 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
         "segments": seq.segments,
         "train_frames": seq.frames("train"),
         "novel_pose_frames": seq.frames("novel_pose"),
-        "light": {"direction": list(LIGHT.direction), "ambient": LIGHT.ambient, "diffuse": LIGHT.diffuse},
+        "camera_ring_radius": radius,
+        "imperfections": {name: getattr(settings, name) for name in IMPERFECTION_DEFAULTS},
+        "ground_truth": "ground_truth" if settings.has_ground_truth else None,
+        "light": {
+            "direction": list(shading.direction),
+            "ambient": shading.ambient,
+            "diffuse": shading.diffuse,
+            "specular": shading.specular,
+            "shininess": shading.shininess,
+        },
         "render_seconds": round(time.perf_counter() - t0, 2),
     }
     atomic_write_text(meta_path, json.dumps(meta, indent=1))
     writer.finish(F)  # annots.npy last: its presence marks a complete sequence
     started.unlink(missing_ok=True)
     return root
+
+
+def _skirt(settings: StudioSettings, body, rig, poses: np.ndarray, Rroot: np.ndarray, Th: np.ndarray):
+    """(Skirt, its world vertices [F, Vs, 3] float32) for garment="skirt", else (None, None)."""
+    import torch
+
+    from framework.data.garment import build_skirt, skirt_motion
+
+    if settings.garment == "none":
+        return None, None
+    pelvis = rig.index["pelvis"]
+    skirt = build_skirt(body.rest_vertices.cpu().numpy(), body.skin_weights.cpu().numpy(), list(body.joint_names),
+                        rig.rest_joints[pelvis])  # fmt: skip
+    with torch.no_grad():
+        G = body.bone_transforms(torch.as_tensor(poses)).double().numpy()  # [F, J, 4, 4] rest -> posed (body frame)
+    root = np.tile(np.eye(4), (len(poses), 1, 1))
+    root[:, :3, :3], root[:, :3, 3] = Rroot, Th
+    return skirt, skirt_motion(skirt, root @ G[:, pelvis], lag=settings.garment_lag).astype(np.float32)
+
+
+def _fitted(settings: StudioSettings, body, poses: np.ndarray, Rroot: np.ndarray, Th: np.ndarray, posed: np.ndarray):
+    """The annotation a fit would give: (poses [F, J, 3], Th [F, 3], body vertices [F, V, 3]), noisy when asked."""
+    import torch
+
+    from framework.data.imperfections import perturb_poses
+
+    if settings.pose_noise_deg == 0 and settings.root_noise_m == 0:
+        return poses, Th, posed
+    rng = np.random.default_rng([settings.seed, 101])
+    fit_poses, fit_Th = perturb_poses(poses, Th, settings.pose_noise_deg, settings.root_noise_m, rng)
+    with torch.no_grad():
+        local = body.posed_vertices(torch.as_tensor(fit_poses)).double().numpy()  # [F, V, 3]
+    fitted = np.einsum("fij,fvj->fvi", Rroot, local) + fit_Th[:, None].astype(np.float64)
+    return fit_poses, fit_Th, fitted.astype(np.float32)
+
+
+def _write_ground_truth(root: Path, writer, params: list[dict], posed: np.ndarray, skirt, skirt_posed) -> None:
+    """ground_truth/: the clean params and body vertices, and the skirt (rest mesh and per-frame vertices)."""
+    from framework.data.zju.layout import normalize_params, save_pickled_dict
+
+    gt = root / "ground_truth"
+    for sub in ("params", "vertices") + (("garment",) if skirt is not None else ()):
+        (gt / sub).mkdir(parents=True, exist_ok=True)
+    for f, p in enumerate(params):
+        n = writer.file_number(f)
+        save_pickled_dict(gt / "params" / f"{n}.npy", normalize_params(p, f"frame {f}"))
+        np.save(gt / "vertices" / f"{n}.npy", posed[f])
+        if skirt is not None:
+            np.save(gt / "garment" / f"{n}.npy", skirt_posed[f])
+    if skirt is not None:
+        np.save(gt / "garment_rest.npy", skirt.rest.astype(np.float32))
+        np.save(gt / "garment_faces.npy", skirt.faces.astype(np.int32))
 
 
 def disk_size(path: Path) -> int:
@@ -239,6 +400,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--supersample", type=int, default=d.supersample, help="s x s rays per pixel (anti-aliasing)")
     ap.add_argument("--radius", type=float, default=d.radius, help="camera ring radius in metres (default 3)")
     ap.add_argument("--image-ext", default=d.image_ext, choices=(".jpg", ".png"), help="image format (default .jpg)")
+    ap.add_argument("--pose-noise-deg", type=float, default=0.0, help="RMS per-joint rotation noise of stored poses")
+    ap.add_argument("--root-noise-m", type=float, default=0.0, help="RMS root position jitter of stored poses (m)")
+    ap.add_argument("--mask-error-px", type=float, default=0.0, help="parser-like mask errors in mask_cihp/ (px)")
+    ap.add_argument("--garment", default="none", choices=GARMENTS, help="a loose garment (default none)")
+    ap.add_argument("--subject-height-fraction", type=float, default=None,
+                    help="frame the subject to this fraction of the image height (overrides --radius)")  # fmt: skip
+    ap.add_argument("--motion", default=d.motion, help="motion program: default | idle (near-static) | arms")
+    ap.add_argument("--look", default=d.look, choices=sorted(LOOKS), help="default (matte cloth) | glossy")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="render processes (default 2)")
     ap.add_argument("--force", action="store_true", help="re-render even if the sequence exists")
     a = ap.parse_args(argv)
@@ -252,6 +421,13 @@ def main(argv: list[str] | None = None) -> None:
         supersample=a.supersample,
         radius=a.radius,
         image_ext=a.image_ext,
+        pose_noise_deg=a.pose_noise_deg,
+        root_noise_m=a.root_noise_m,
+        mask_error_px=a.mask_error_px,
+        garment=a.garment,
+        subject_height_fraction=a.subject_height_fraction,
+        motion=a.motion,
+        look=a.look,
     )
     t = time.perf_counter()
     root = generate(s, a.out, workers=a.workers, force=a.force)

@@ -43,6 +43,16 @@ class BodyModel(nn.Module, ABC):
             pose = pose[:, self.pose_input_joints]
         return pose.reshape(pose.shape[0], -1)
 
+    @property
+    def num_input_joints(self) -> int:
+        """Joints of the poses this body is driven with (the dataset's); more than `num_joints` when joints are
+        folded away (`framework.model.frozen_body`)."""
+        return self.num_joints
+
+    def input_pose(self, pose: Tensor) -> Tensor:
+        """A dataset pose [B, num_input_joints, 3] -> this body's pose [B, J, 3] (the same pose for most bodies)."""
+        return pose
+
     def pose_description(self) -> str:
         """How this body names itself in a pose-shape error (subclasses add what helps the user fix the pose)."""
         return f"{self.registry_name or type(self).__name__} body"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -42,6 +43,11 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
     def fitted_betas(self) -> Tensor | None:
         """[S] the body shape the poses were fitted with (mean over the split's frames); None when the data has none.
         SMPL-family bodies whose config leaves `betas` null take it, so the skeleton matches the poses."""
+        return None
+
+    def body_box(self, frame: int) -> np.ndarray | None:
+        """[2, 3] world box of `frame`'s posed body for the body-box metrics (`framework.evaluation.body_box`: the
+        stored body vertices' box grown by 5 cm), or None when the dataset has no body vertices."""
         return None
 
     def initial_points(self) -> Tensor | None:

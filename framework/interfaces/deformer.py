@@ -23,6 +23,9 @@ class Deformer(nn.Module, ABC):
     def bind(self, body: object | None, bounds: Tensor | None) -> None:  # noqa: B027 - optional hook
         """Called once before training with the body model (or None) and the canonical box [2, 3]."""
 
+    def use_aux(self, keys: frozenset[str]) -> None:  # noqa: B027 - optional hook
+        """The aux outputs the losses will read; a deformer may skip computing any other (e.g. L_w's weight std)."""
+
     @abstractmethod
     def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None) -> DeformOutput:
         """bone_transforms: [J, 4, 4] rest-to-posed skinning transforms (None for static scenes)."""

@@ -11,6 +11,8 @@ from framework.types import FrameBatch, RenderOutput
 
 class Loss(nn.Module, ABC):
     registry_name: str = ""
+    #: deformer aux outputs this term reads (e.g. "weight_std"); a deformer computes only those some term reads
+    aux_keys: tuple[str, ...] = ()
 
     @abstractmethod
     def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:

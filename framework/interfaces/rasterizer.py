@@ -70,6 +70,22 @@ class Rasterizer(ABC):
     ) -> RenderOutput:
         """Render every camera; differentiable in all Gaussian tensors."""
 
+    def max_blend_weights(
+        self,
+        means: Tensor,  # [N, 3]
+        quats: Tensor,  # [N, 4]
+        scales: Tensor,  # [N, 3]
+        opacities: Tensor,  # [N]
+        cameras: Cameras,
+        *,
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> Tensor:
+        """[N] the largest blending weight T * alpha (as composited, after early termination) each Gaussian reaches
+        at any pixel of any camera; pruning removes Gaussians that never reach a threshold. Optional: a backend that
+        cannot report it leaves this as is and callers fall back to `torch_ref`."""
+        raise NotImplementedError(f"rasterizer '{self.registry_name}' does not report per-Gaussian blending weights")
+
 
 def check_render_inputs(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, sh_degree: int

@@ -68,7 +68,8 @@ class ImageGridLogger(Callback):
 
 
 class StageSwitch(Callback):
-    """Stage 1 trains Gaussians and joints only; at `stage1_steps` the corrector and weight residual switch on."""
+    """Stage 1 trains Gaussians and joints only; at `stage1_steps` the corrector and weight residual switch on and the
+    module is told (`begin_stage2`), which restarts the densifier's opacity-reset count as the paper schedules it."""
 
     def __init__(self, stage1_steps: int = 0) -> None:
         self.stage1_steps = stage1_steps
@@ -81,9 +82,12 @@ class StageSwitch(Callback):
             if hasattr(part, "enabled") and part.enabled != stage2:
                 part.enabled = stage2
                 changed = True
+        if self.stage1_steps > 0 and trainer.global_step == self.stage1_steps:
+            pl_module.begin_stage2(trainer.global_step)
         if changed and stage2 and trainer.global_step > 0:
             tqdm.write(f"[splatrig] step {trainer.global_step}: stage 2, corrector and blend-weight residual on")
-        pl_module.log("train/stage", 2.0 if stage2 else 1.0, on_step=True, batch_size=1)
+        if getattr(pl_module, "logs_this_step", lambda: True)():
+            pl_module.log("train/stage", 2.0 if stage2 else 1.0, on_step=True, batch_size=1)
 
     def on_train_start(self, trainer, pl_module) -> None:
         stage2 = trainer.global_step >= self.stage1_steps

@@ -28,14 +28,14 @@ def read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", what: st
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{what}={path}: no such checkpoint file; point it at a run's checkpoints/last.ckpt "
-                              f"(or best.ckpt, final.ckpt).")  # fmt: skip
+                              f"(or final.ckpt).")  # fmt: skip
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:  # truncated zip, bad pickle, not a torch file at all
         reason = str(exc).split(". ")[0].strip().rstrip(".") or type(exc).__name__
         raise CheckpointError(
             f"{what}={path}: cannot be read as a checkpoint ({type(exc).__name__}: {reason}); the file is truncated "
-            f"or corrupted. Use another checkpoint of the run (last.ckpt, best.ckpt) or train again."
+            f"or corrupted. Use another checkpoint of the run (last.ckpt, final.ckpt) or train again."
         ) from None
     cfg = ckpt.get("hyper_parameters", {}).get("cfg") if isinstance(ckpt, dict) else None
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or cfg is None:

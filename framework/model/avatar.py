@@ -46,14 +46,18 @@ class GaussianParams(nn.Module):
     def num(self) -> int:
         return int(self.params["means"].shape[0])
 
-    def gaussians(self) -> Gaussians:
+    def gaussians(self, sh_degree: int | None = None) -> Gaussians:
+        """The canonical Gaussians; with `sh_degree`, only the (sh_degree + 1)^2 coefficients that degree renders."""
         p = self.params
+        # Always through cat, even for degree 0: shN then gets a zero gradient rather than none, so Adam's step count
+        # and moments evolve exactly as when every band is posed.
+        rest = p["shN"] if sh_degree is None else p["shN"][:, : (sh_degree + 1) ** 2 - 1]
         return Gaussians(
             means=p["means"],
             quats=p["quats"],
             log_scales=p["log_scales"],
             opacity_logits=p["opacity_logits"],
-            sh=torch.cat([p["sh0"], p["shN"]], dim=1),
+            sh=torch.cat([p["sh0"], rest], dim=1),
             latents=p["latents"] if "latents" in p else None,
             skin_weights=p["skin_weights"] if "skin_weights" in p else None,
         )
@@ -85,11 +89,15 @@ class PoseRefiner(nn.Module):
         self.joint_residual = nn.Parameter(torch.zeros(num_joints, 3))  # [J, 3]
 
     def forward(self, frame: Tensor, pose: Tensor, rest_joints: Tensor) -> tuple[Tensor, Tensor]:
-        """frame [B], pose [B, J, 3] -> refined pose [B, J, 3], joints [B, J, 3]."""
+        """frame [B], pose [B, J, 3] -> refined pose [B, J, 3], joints [B, J, 3].
+
+        A negative frame id marks a pose from outside the training sequence (a motion file, a hand-made pose): it
+        gets the shared joint residual but no per-frame pose residual."""
         joints = rest_joints.expand(pose.shape[0], -1, -1)
         if not self.enabled:
             return pose, joints
-        return pose + self.pose_residual[frame], joints + self.joint_residual
+        known = (frame >= 0).to(pose.dtype)[:, None, None]  # [B, 1, 1]
+        return pose + known * self.pose_residual[frame.clamp_min(0)], joints + self.joint_residual
 
 
 @dataclass
@@ -133,7 +141,7 @@ class Avatar(nn.Module):
         """World-space skinning transforms [J, 4, 4] and the pose features [P] for the corrector."""
         if self.body is None or batch.pose is None:
             return None, None
-        pose = batch.pose[:1]
+        pose = self.body.input_pose(batch.pose[:1])
         joints = self.body.rest_joints.unsqueeze(0)
         if self.pose_refiner is not None:
             pose, joints = self.pose_refiner(batch.frame[:1], pose, self.body.rest_joints.unsqueeze(0))
@@ -142,12 +150,16 @@ class Avatar(nn.Module):
             transforms = batch.root[0] @ transforms
         return transforms, self.body.pose_features(pose)[0]
 
-    def pose(self, batch: FrameBatch) -> tuple[Gaussians, Gaussians, dict[str, Tensor]]:
-        """(canonical, posed, aux): F_a correction then skinning; cached across cameras when gradients are off."""
-        canonical = self.gaussians.gaussians()
+    def pose(self, batch: FrameBatch, sh_degree: int | None = None) -> tuple[Gaussians, Gaussians, dict[str, Tensor]]:
+        """(canonical, posed, aux): F_a correction then skinning; cached across cameras when gradients are off.
+
+        With `sh_degree`, the Gaussians carry only the SH coefficients that degree renders, so the corrector and the
+        deformer's SH rotation skip the bands the schedule has not switched on yet (they would get zero gradients).
+        """
+        canonical = self.gaussians.gaussians(sh_degree)
         key = None
         if not torch.is_grad_enabled() and not self.training:
-            key = self._pose_key(batch)
+            key = self._pose_key(batch) + str(sh_degree).encode()
             if self._posed_cache is not None and self._posed_cache[0] == key:
                 return canonical, self._posed_cache[1], self._posed_cache[2]
         transforms, pose_features = self.bone_transforms(batch)
@@ -164,7 +176,7 @@ class Avatar(nn.Module):
         return super().train(mode)
 
     def forward(self, batch: FrameBatch, sh_degree: int) -> AvatarOutput:
-        canonical, posed, aux = self.pose(batch)
+        canonical, posed, aux = self.pose(batch, sh_degree)
         render = self.rasterizer.render(
             posed.means,
             posed.quats,

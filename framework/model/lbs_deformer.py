@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
-from framework.rig.lbs import STRETCH_MODES, apply_lbs, six_points, weight_std
+from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, apply_lbs, six_points, weight_std
 from framework.rig.weight_field import WeightField
 from framework.types import Gaussians
 
@@ -19,17 +19,30 @@ class LBSDeformerBase(Deformer):
     Weights: the Gaussians' baked `skin_weights` when present, else the weight field at the canonical means.
 
     aux["weight_std"] [N] is the L_w term (std of the weights over the six points x +- s_l a_l); it is computed only
-    when gradients are enabled (training) and `weight_std` is on, and is zero for baked weights (nothing to smooth).
+    when gradients are enabled (training), `weight_std` is on and a loss term reads it (`use_aux`), and is zero for
+    baked weights (nothing to smooth). `centres` chooses how centres move (`framework.rig.lbs.apply_lbs`).
     """
 
     def __init__(
-        self, grid_resolution: int = 64, stretch: str = "diag", weight_std: bool = True, use_cache: bool = True
+        self,
+        grid_resolution: int = 64,
+        stretch: str = "diag",
+        weight_std: bool = True,
+        use_cache: bool = True,
+        polar_dtype: str = "float32",
+        centres: str = "blended",
     ) -> None:
         super().__init__()
         if stretch not in STRETCH_MODES:
             raise ValueError(f"deformer.stretch: expected one of {STRETCH_MODES}, got '{stretch}'.")
-        self.grid_resolution, self.stretch = grid_resolution, stretch
-        self.report_weight_std, self.use_cache = weight_std, use_cache
+        if polar_dtype not in POLAR_DTYPES:
+            raise ValueError(f"deformer.polar_dtype: expected one of {sorted(POLAR_DTYPES)}, got '{polar_dtype}'.")
+        if centres not in CENTRE_MODES:
+            raise ValueError(f"deformer.centres: expected one of {CENTRE_MODES}, got '{centres}'.")
+        self.polar_dtype = POLAR_DTYPES[polar_dtype]
+        self.grid_resolution, self.stretch, self.centres = grid_resolution, stretch, centres
+        self.weight_std_enabled, self.use_cache = weight_std, use_cache
+        self.report_weight_std = weight_std
         self.field: WeightField | None = None
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
@@ -39,6 +52,9 @@ class LBSDeformerBase(Deformer):
                 "deformer=identity."
             )
         self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
+
+    def use_aux(self, keys: frozenset[str]) -> None:
+        self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
 
     def weights(self, points: Tensor) -> Tensor:
         """Blend weights [..., J] at canonical points [..., 3]."""
@@ -66,5 +82,5 @@ class LBSDeformerBase(Deformer):
             aux["weight_std"] = weight_std(w7[:, 1:])
         else:
             w = self.weights(gaussians.means)  # [N, J]
-        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch)
+        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
         return DeformOutput(posed=posed, weights=w, aux=aux)

@@ -46,6 +46,11 @@ class CompositeLoss(nn.Module):
             self.terms[key] = LOSSES.build(name, **kwargs)
             self.weights[key] = weight
 
+    @property
+    def aux_keys(self) -> frozenset[str]:
+        """Deformer aux outputs the built terms read (a term with weight 0 is not built, so it asks for nothing)."""
+        return frozenset(k for term in self.terms.values() for k in getattr(term, "aux_keys", ()))
+
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CompositeLoss:
         """Build from a loss group config (`{terms: {...}}`)."""

@@ -56,6 +56,7 @@ from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
 from framework.paths import cache_dir
 from framework.registry import register
+from framework.rig.fold import fold_skeleton
 
 ASSET_FORMAT = 1
 PHENOTYPE_DEFAULTS = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.5, "height": 0.5, "proportions": 0.5}
@@ -154,30 +155,6 @@ def load_anny_asset(phenotype: dict[str, float] | None = None, root: Path | None
         return {k: data[k] for k in data.files}
 
 
-def fold_skeleton(
-    labels: list[str], parents: list[int], keep: tuple[str, ...]
-) -> tuple[list[int], list[int], list[int]]:
-    """Fold every bone not in `keep` into its nearest kept ancestor.
-
-    Returns (kept full-rig indices in rig order, reduced parents, full -> reduced index map [J_full])."""
-    missing = [k for k in keep if k not in labels]
-    if missing:
-        raise ValueError(f"anny body: reduced-skeleton bones {missing} are not in the Anny rig ({len(labels)} bones).")
-    keep_set = set(keep)
-    kept = [i for i, name in enumerate(labels) if name in keep_set]
-    if parents[kept[0]] >= 0:
-        raise ValueError("anny body: the reduced skeleton must keep the root bone.")
-    position = {full: red for red, full in enumerate(kept)}
-    to_reduced = []
-    for i in range(len(labels)):
-        j = i
-        while j not in position:
-            j = parents[j]
-        to_reduced.append(position[j])
-    reduced_parents = [-1 if parents[i] < 0 else to_reduced[parents[i]] for i in kept]
-    return kept, reduced_parents, to_reduced
-
-
 def anny_pose_parameters(
     pose: Tensor,
     rest_bone_poses: Tensor,
@@ -241,7 +218,7 @@ class AnnyBody(BodyModel):
         if skeleton == "full":
             kept, parents, to_reduced = list(range(J_full)), full_parents, list(range(J_full))
         else:
-            kept, parents, to_reduced = fold_skeleton(labels, full_parents, REDUCED_JOINTS)
+            kept, parents, to_reduced = fold_skeleton(labels, full_parents, REDUCED_JOINTS, owner="anny body")
         weights = np.zeros((V, len(kept)))
         np.add.at(weights.T, np.asarray(to_reduced), dense.T)  # fold: sum weights of folded bones into ancestors
         self.joint_names = [labels[i] for i in kept]

@@ -2,7 +2,8 @@
 `zju_mocap` loader — the very same code path real ZJU-MoCap data takes.
 
 Splits: training frames are the training motions, `novel_pose` frames are the held-out motion (from `studio.json`);
-test views are every `test_view_every`-th camera starting at `test_view_offset`, the rest train.
+test views are every `test_view_every`-th camera starting at `test_view_offset`, the rest train. The capture
+imperfections (pose noise, parser masks, a skirt, ZJU framing) are `framework.data.studio` settings.
 """
 
 from __future__ import annotations
@@ -38,16 +39,30 @@ class SyntheticStudioDataset(ZjuMocapDataset):
         body: str = "anny",
         skeleton: str = "reduced",
         supersample: int = 1,
+        motion: str = "default",
+        look: str = "default",
         workers: int = 2,
         test_view_every: int = 4,
         test_view_offset: int = 2,
         eval_frame_step: int = 1,
+        pose_noise_deg: float = 0.0,
+        root_noise_m: float = 0.0,
+        mask_error_px: float = 0.0,
+        garment: str = "none",
+        garment_lag: float = 0.5,
+        subject_height_fraction: float | None = None,
         **zju_kwargs: Any,
     ) -> None:
         from framework.data.studio import StudioSettings, generate
 
         settings = StudioSettings(resolution=int(resolution), views=int(views), frames=int(frames), seed=int(seed),
-                                  body=str(body), skeleton=str(skeleton), supersample=int(supersample))  # fmt: skip
+                                  body=str(body), skeleton=str(skeleton), supersample=int(supersample),
+                                  pose_noise_deg=float(pose_noise_deg), root_noise_m=float(root_noise_m),
+                                  mask_error_px=float(mask_error_px), garment=str(garment),
+                                  garment_lag=float(garment_lag),
+                                  subject_height_fraction=None if subject_height_fraction is None
+                                  else float(subject_height_fraction),
+                                  motion=str(motion), look=str(look))  # fmt: skip
         path = generate(settings, root, workers=int(workers), progress=True)
         meta = json.loads((path / "studio.json").read_text())
         if views < 2:

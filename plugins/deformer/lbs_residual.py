@@ -12,19 +12,29 @@ from framework.registry import register
 
 @register("deformer", "lbs_residual")
 class LBSResidualDeformer(LBSDeformerBase):
-    """w = normalise((w_grid + eps) * exp(dw(x))), dw = MLP(posenc(x)) with a zero-initialised last layer.
+    """Grid weights w0 refined by dw = F_dw(x) = MLP(posenc(x)) with a zero-initialised last layer (so training starts
+    from the grid weights), in one of two forms (`residual`):
 
-    The residual acts on log-weights: the result is non-negative and sums to one by construction (a softmax of
-    log(w_grid + eps) + dw), and it starts as the grid weights. `eps` (1e-6) lets a joint the grid gives no weight
-    gain some if the data demands (dw must reach about log(w / eps) ~ 14), while leaking at most J * eps at start.
+    - "softmax" (ours): w = softmax(log(w0 + eps) + dw) = normalise((w0 + eps) exp(dw)). The residual acts on
+      log-weights, so the weights stay non-negative and sum to one by construction. `eps` (1e-6) lets a joint the
+      grid gives no weight gain some if the data demands (dw must reach about log(w / eps) ~ 14), while leaking at
+      most J * eps at start.
+    - "additive" (the paper): w = w0 + dw, as written; nothing keeps the result non-negative or summing to one.
+
     Disabled (stage 1) it is plain `lbs` and its parameters are unused. After training, `bake` stores the final
     weights per Gaussian so F_dw is not evaluated at inference.
     """
 
-    def __init__(self, hidden: int = 32, layers: int = 4, num_freqs: int = 4, eps: float = 1e-6, **kwargs) -> None:
+    RESIDUALS = ("softmax", "additive")
+
+    def __init__(self, hidden: int = 32, layers: int = 4, num_freqs: int = 4, eps: float = 1e-6,
+                 residual: str = "softmax", **kwargs) -> None:  # fmt: skip
         super().__init__(**kwargs)
+        if residual not in self.RESIDUALS:
+            raise ValueError(f"deformer 'lbs_residual': residual must be one of {self.RESIDUALS}, got '{residual}'.")
         self.enabled = True
         self.hidden, self.num_layers, self.num_freqs, self.eps = hidden, layers, num_freqs, eps
+        self.residual = residual
         self.mlp: nn.Sequential | None = None
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
@@ -44,4 +54,6 @@ class LBSResidualDeformer(LBSDeformerBase):
             return w
         x = normalize_to_bounds(points, self.field.bounds)
         dw = self.mlp(posenc(x, self.num_freqs).to(w.dtype))  # [..., J]
+        if self.residual == "additive":
+            return w + dw
         return torch.softmax(torch.log(w + self.eps) + dw, dim=-1)

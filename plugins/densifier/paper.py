@@ -7,11 +7,11 @@ opacities before the pose-dependent corrector), which are the ones densification
 
 Schedule (global training steps `step`):
   * refine (clone, split, prune) every `refine_every` steps for refine_start < step < refine_stop;
-  * opacity reset at `s = step - schedule_offset` in {first_reset, first_reset + reset_every, ...}, i.e. with the
-    defaults 3000, 9000, 15000, ... ("reset at 3000, then every 6000"), only while step < refine_stop.
-    We read the paper's "then every 6000 in stage 2" as: the schedule is relative to the start of the stage that
-    densifies, so a run whose stage 2 begins at step T sets `schedule_offset: T` (or a stage callback calls
-    `restart_schedule(state, T)`) and resets land at T+3000, T+9000, ...; refine_start / refine_stop stay absolute;
+  * opacity reset, the paper's schedule: at `first_reset` (3000 in the paper, during stage 1), then every
+    `reset_every` (6000) steps counted from the start T of stage 2 (T + 6000, T + 12000, ...). The trainer's stage
+    switch calls `restart_schedule(state, T)`; a run without a stage 1 never calls it and resets at first_reset,
+    first_reset + reset_every, ... Resets belong to densification (as in 3DGS): none at or after refine_stop.
+    Profiles scale first_reset / reset_every with their schedule length (conf/profile/*.yaml);
   * after the first reset, Gaussians larger than `prune_scale3d * scene_scale` are pruned as well (3DGS).
 Splits replace a Gaussian by `split_factor` samples drawn from it with scales / (0.8 * split_factor); clones copy it.
 Growth never takes N above `max_gaussians` (the highest-gradient candidates win), which bounds CPU cost.
@@ -41,7 +41,6 @@ class PaperDensifier(Densifier):
         refine_every: int = 100,
         reset_every: int = 6000,
         first_reset: int = 3000,
-        schedule_offset: int = 0,
         prune_opacity: float = 0.005,
         reset_opacity: float = 0.01,
         grow_scale3d: float = 0.01,
@@ -64,7 +63,6 @@ class PaperDensifier(Densifier):
         self.refine_every = refine_every
         self.reset_every = reset_every
         self.first_reset = first_reset
-        self.schedule_offset = schedule_offset
         self.prune_opacity = prune_opacity
         self.reset_opacity = reset_opacity
         self.grow_scale3d = grow_scale3d
@@ -81,13 +79,13 @@ class PaperDensifier(Densifier):
             "grad2d": None,
             "count": None,
             "scene_scale": float(scene_scale),
-            "schedule_offset": int(self.schedule_offset),
+            "stage2_start": None,  # set by restart_schedule when stage 2 begins
             "last": {},
         }
 
     def restart_schedule(self, state: dict[str, Any], step: int) -> None:
-        """Make the opacity-reset schedule count from `step` (e.g. at the switch to stage 2)."""
-        state["schedule_offset"] = int(step)
+        """Stage 2 begins at `step`: from here on, resets come every `reset_every` steps counted from it."""
+        state["stage2_start"] = int(step)
 
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
         means2d = info.get("means2d")
@@ -118,8 +116,12 @@ class PaperDensifier(Densifier):
     # -- pieces -----------------------------------------------------------------------------------------------------
 
     def is_reset_step(self, step: int, state: dict[str, Any]) -> bool:
-        s = step - int(state.get("schedule_offset", self.schedule_offset))
-        return step < self.refine_stop and s >= self.first_reset and (s - self.first_reset) % self.reset_every == 0
+        if step >= self.refine_stop:
+            return False
+        start = state.get("stage2_start")
+        if start is not None and step >= start:
+            return step > start and (step - start) % self.reset_every == 0
+        return step >= self.first_reset and (step - self.first_reset) % self.reset_every == 0
 
     def accumulate(self, params: dict[str, nn.Parameter], state: dict[str, Any], info: dict[str, Any]) -> None:
         """Add |d loss / d means2d| in NDC units for every Gaussian visible in a camera, and count the views."""
@@ -213,8 +215,7 @@ class PaperDensifier(Densifier):
         if params["means"].shape[0] == 0:
             return 0
         remove = params["opacity_logits"].detach().reshape(-1).sigmoid() < self.prune_opacity
-        s = step - int(state.get("schedule_offset", self.schedule_offset))
-        if s > self.first_reset:
+        if step > self.first_reset:
             remove |= params["log_scales"].detach().exp().amax(dim=-1) > self.prune_scale3d * state["scene_scale"]
         n = int(remove.sum())
         if n:

@@ -19,18 +19,25 @@ class DSSIMLoss(Loss):
 
     'same' padding (reflected borders) keeps border pixels in the loss, as 3DGS training does. Images smaller than
     the window use the largest window the reflection allows (down to one pixel).
+
+    `foreground_only` (the paper's "only foreground" row) compares the two images with everything outside the human
+    mask set to zero in both, so nothing rendered outside the mask changes the loss (SSIM of two zero patches is 1).
     """
 
-    def __init__(self, window_size: int = 11) -> None:
+    def __init__(self, window_size: int = 11, foreground_only: bool = False) -> None:
         super().__init__()
         if window_size < 1 or window_size % 2 == 0:
             raise ValueError(f"loss 'dssim': window_size must be a positive odd number, got {window_size}.")
         self.window_size = window_size
+        self.foreground_only = foreground_only
 
     def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
         from kornia.metrics import ssim
 
         pred, target = to_nchw(render.rgb), to_nchw(batch.image.to(render.rgb.dtype))
+        if self.foreground_only:
+            keep = batch.mask.to(pred.dtype).unsqueeze(1)  # [B, 1, H, W]
+            pred, target = pred * keep, target * keep
         # Reflected borders need the half window below the image size: tiny renders get a smaller window.
         window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
         ssim_map = ssim(pred, target, window, max_val=1.0)  # [B, 3, H, W]

@@ -13,6 +13,8 @@ from framework.types import FrameBatch, RenderOutput
 class WeightStdLoss(Loss):
     """mean of aux["weight_std"]; zero when the deformer reports none (e.g. plain LBS with baked weights)."""
 
+    aux_keys = ("weight_std",)
+
     def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
         std = (aux or {}).get("weight_std")
         if std is None or std.numel() == 0:

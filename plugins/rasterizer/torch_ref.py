@@ -9,7 +9,8 @@ padding and per-tile sorts of a tiled renderer cost far more than they save. Per
    millions of pairs would lose the per-pixel digits), which also gives the early-termination prefix;
 4. per-pixel sums are segment sums over the sorted pairs.
 A custom autograd function does the compositing backward in closed form from a second segmented sum (the effect of
-each alpha on the pairs behind it), keeping only per-pair indices, offsets, alpha and transmittance from forward.
+each alpha on the pairs behind it), keeping per-pair indices, offsets, alpha, transmittance and the entry values the
+forward gathered for each pair (conic, opacity, colour, depth), so the backward gathers only per-pixel gradients.
 The per-pair arithmetic lives in four small functions that `compile=True` hands to `torch.compile`.
 """
 
@@ -90,97 +91,129 @@ def enumerate_pairs(
     return ent, pix
 
 
+_pixel_centre_cache: dict[tuple[int, int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
+
+
+def pixel_centres(num_pixels: int, width: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """x and y of every flat pixel's centre, [num_pixels] each (rows run on across stacked cameras); cached.
+
+    Looked up by the sorted pixel index, which reads them almost sequentially: cheaper than dividing every pair's
+    pixel index (integer division does not vectorise; the float64 route costs six passes over the pairs)."""
+    key = (num_pixels, width, dtype, device)
+    if key not in _pixel_centre_cache:
+        if len(_pixel_centre_cache) > 8:
+            _pixel_centre_cache.clear()
+        flat = torch.arange(num_pixels, device=device)
+        row = torch.div(flat, width, rounding_mode="floor")
+        _pixel_centre_cache[key] = ((flat - row * width).to(dtype) + 0.5, row.to(dtype) + 0.5)
+    return _pixel_centre_cache[key]
+
+
 def pair_alpha(
-    mx: Tensor, my: Tensor, ca: Tensor, cb: Tensor, cc: Tensor, op: Tensor, ent: Tensor, pix: Tensor, width: int
+    mx: Tensor, my: Tensor, ca: Tensor, cb: Tensor, cc: Tensor, op: Tensor, ent: Tensor, px: Tensor, py: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per pair (dx, dy, alpha) with d = mean2d - pixel centre and the contribution rule applied:
     alpha = min(0.999, opacity * exp(-sigma)), or 0 where that is below 1/255 or sigma < 0.
 
-    Entry columns are [M] (means shifted by camera * height along y, so that row = pix // width works for every
-    camera).
+    Entry columns are [M] (means shifted by camera * height along y, so that the stacked pixel rows address every
+    camera); `px`, `py` [P] are the pairs' pixel centres.
     """
-    # row/column through float64 (exact for any realistic pixel count; int64 division does not vectorise)
-    pf = pix.to(torch.float64)
-    row = torch.floor((pf + 0.5) * (1.0 / width))
-    col = pf - row * width
-    dx = mx.index_select(0, ent) - (col + 0.5).to(mx.dtype)
-    dy = my.index_select(0, ent) - (row + 0.5).to(mx.dtype)
-    sigma = 0.5 * (ca.index_select(0, ent) * dx * dx + cc.index_select(0, ent) * dy * dy)
-    sigma = sigma + cb.index_select(0, ent) * dx * dy
-    raw = op.index_select(0, ent) * torch.exp(-sigma)
-    alpha = torch.where((raw >= ALPHA_MIN) & (sigma >= 0), raw.clamp_max(ALPHA_MAX), torch.zeros_like(raw))
+    # in-place chains: every step is one pass over the pairs, with no temporaries to allocate
+    dx = mx.index_select(0, ent).sub_(px)
+    dy = my.index_select(0, ent).sub_(py)
+    sigma = ca.index_select(0, ent).mul_(dx).mul_(dx)  # a dx^2
+    sigma.add_(cc.index_select(0, ent).mul_(dy).mul_(dy)).mul_(0.5)  # (a dx^2 + c dy^2) / 2
+    sigma.add_(cb.index_select(0, ent).mul_(dx).mul_(dy))  # + b dx dy
+    raw = op.index_select(0, ent).mul_(torch.exp(-sigma))
+    alpha = torch.where((raw >= ALPHA_MIN) & (sigma >= 0), raw.clamp_max_(ALPHA_MAX), 0.0)
     return dx, dy, alpha
+
+
+def pair_transmittance(alpha: Tensor, pix: Tensor, num_pixels: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Pairs sorted by (pixel, depth) -> (alpha with terminated pairs zeroed [P], log(1 - that alpha) [P], T before
+    each pair [P], pairs per pixel [num_pixels]). The running sum of log(1 - alpha) is float64: a float32 sum over all
+    pairs would lose the digits. Early termination: a pair counts only while T after it stays > 1e-4; that is a prefix
+    of every pixel's segment (usually nearly all of it), so the rest is switched off rather than removed."""
+    log1m = torch.log1p(-alpha)
+    cs = torch.cumsum(log1m.double(), 0)
+    counts = torch.bincount(pix, minlength=num_pixels)
+    first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
+    excl = cs - log1m
+    base = excl.index_select(0, first).index_select(0, pix)  # running sum before each pixel's segment
+    keep = (cs - base) > LOG_T_MIN
+    alpha = torch.where(keep, alpha, 0.0)
+    log1m = torch.where(keep, log1m, 0.0)  # = log1p(-alpha) of the switched-off alpha
+    T = excl.sub_(base).to(alpha.dtype).exp_()  # transmittance before each pair
+    return alpha, log1m, T, counts
 
 
 def _rows(k: int, n: int, like: Tensor) -> Tensor:
     return torch.empty(k, n, dtype=like.dtype, device=like.device)
 
 
-def forward_accumulate(cols: Tensor, ent: Tensor, counts: Tensor, T: Tensor, alpha: Tensor) -> Tensor:
+def forward_accumulate(pair_cols: Tensor, counts: Tensor, T: Tensor, alpha: Tensor, log1m: Tensor) -> Tensor:
     """Per-pixel sums [num_pixels, 5] of w * (r, g, b, z) and log(1 - alpha), w = T * alpha.
 
     Pairs are sorted by pixel, so the sums are segment sums (`counts` pairs per pixel), which is faster than a
-    scatter. `cols` [4, M] holds the entries' r, g, b, z as rows: gathering 1-D rows is several times faster than
-    gathering rows of an [M, 4] matrix.
+    scatter. `pair_cols` [4, P] holds each pair's entry r, g, b, z (gathered once, kept for the backward). The terms
+    are written as contiguous rows and summed row by row (measured faster than filling the columns of a [P, 5]).
     """
-    w = T * alpha
-    src = torch.empty(ent.shape[0], 5, dtype=T.dtype, device=T.device)  # filled in place instead of stacked
-    for i in range(4):
-        torch.mul(w, cols[i].index_select(0, ent), out=src[:, i])
-    torch.log1p(-alpha, out=src[:, 4])
-    return torch.segment_reduce(src, "sum", lengths=counts, axis=0)
+    src = torch.empty(5, T.shape[0], dtype=T.dtype, device=T.device)
+    torch.mul(pair_cols, T * alpha, out=src[:4])
+    src[4] = log1m
+    return torch.stack([torch.segment_reduce(row, "sum", lengths=counts) for row in src], dim=1)
 
 
-def backward_pair_terms(cols: Tensor, grads: Tensor, ent: Tensor, pix: Tensor, T: Tensor, alpha: Tensor) -> Tensor:
-    """s = w * dL/dw per pair, whose suffix sums carry the effect of each alpha on the pairs behind.
+def backward_pair_terms(pair_cols: Tensor, grads: Tensor, pix: Tensor) -> Tensor:
+    """v = dL/dw per pair: the pixel's colour (and depth) gradients dotted with the pair's entry colour (and depth).
 
-    `cols` [4, M] entry r, g, b, z; `grads` [5, num_pixels] dL/d(r, g, b, depth, T_final) per pixel.
+    `pair_cols` [K, P] the pairs' entry r, g, b (, z); `grads` [K, num_pixels] the matching per-pixel gradients.
     """
-    v = grads[0].index_select(0, pix) * cols[0].index_select(0, ent)
-    for i in range(1, 4):
-        v = v + grads[i].index_select(0, pix) * cols[i].index_select(0, ent)
+    v = grads[0].index_select(0, pix) * pair_cols[0]
+    for i in range(1, grads.shape[0]):
+        v = v + grads[i].index_select(0, pix) * pair_cols[i]
     return v
 
 
 def backward_scatter(
-    conic: Tensor,  # [3, M]
-    op: Tensor,  # [M]
-    grads: Tensor,  # [5, num_pixels]
-    T_final: Tensor,
+    num_entries: int,
+    grads: Tensor,  # [K, num_pixels] dL/d(r, g, b (, depth)) per pixel
+    tail: Tensor,  # [num_pixels] T_final * dL/dT_final
     ent: Tensor,
     pix: Tensor,
     dx: Tensor,
     dy: Tensor,
     alpha: Tensor,
     T: Tensor,
+    w: Tensor,
     v: Tensor,
     after: Tensor,
 ) -> Tensor:
-    """Per-entry gradient sums [10, M]: d(mean2d) 2, d(conic) 3, d(opacity) 1, d(r, g, b) 3, d(depth) 1."""
-    w = T * alpha
-    tail = T_final.index_select(0, pix) * grads[4].index_select(0, pix)  # T_final acts like one more layer behind
-    g_alpha = T * v - (after + tail) / (1.0 - alpha)
+    """Per-entry sums [6 + K, M] of g_s dx, g_s dy, g_s dx^2 / 2, g_s dx dy, g_s dy^2 / 2, g_s and w dL/d(colour),
+    with g_s = dL/dsigma. The entry's own conic and opacity turn them into d(mean2d), d(conic), d(opacity) (they are
+    constant over its pairs, so they multiply the sums instead of every pair)."""
+    behind = tail.index_select(0, pix).add_(after).div_(1.0 - alpha)  # T_final acts like one more layer behind
+    g_alpha = torch.mul(T, v).sub_(behind)
     # alpha = opacity * exp(-sigma) where it is neither clamped at 0.999 nor dropped below 1/255
-    g_raw = torch.where((alpha > 0) & (alpha < ALPHA_MAX), g_alpha, torch.zeros_like(g_alpha))
-    g_sigma = -g_raw * alpha
-    a, b, c = (conic[i].index_select(0, ent) for i in range(3))
-    src = _rows(10, ent.shape[0], T)
-    torch.mul(g_sigma, a * dx + b * dy, out=src[0])
-    torch.mul(g_sigma, b * dx + c * dy, out=src[1])
-    torch.mul(g_sigma * dx, 0.5 * dx, out=src[2])
-    torch.mul(g_sigma * dx, dy, out=src[3])
-    torch.mul(g_sigma * dy, 0.5 * dy, out=src[4])
-    torch.div(g_raw * alpha, op.index_select(0, ent), out=src[5])
-    for i in range(4):
+    g_raw = torch.where((alpha > 0) & (alpha < ALPHA_MAX), g_alpha, 0.0)
+    K = grads.shape[0]
+    src = _rows(6 + K, ent.shape[0], T)
+    g_sigma = torch.mul(g_raw, alpha, out=src[5]).neg_()
+    g_sx = torch.mul(g_sigma, dx, out=src[0])
+    g_sy = torch.mul(g_sigma, dy, out=src[1])
+    torch.mul(g_sx, dx, out=src[2]).mul_(0.5)
+    torch.mul(g_sx, dy, out=src[3])
+    torch.mul(g_sy, dy, out=src[4]).mul_(0.5)
+    for i in range(K):
         torch.mul(w, grads[i].index_select(0, pix), out=src[6 + i])
-    return torch.zeros(10, op.shape[0], dtype=T.dtype, device=T.device).index_add_(1, ent, src)
+    return torch.zeros(6 + K, num_entries, dtype=T.dtype, device=T.device).index_add_(1, ent, src)
 
 
 @dataclass(frozen=True)
 class Kernels:
     """The per-pair stages, eager or compiled; the integer bookkeeping between them stays eager."""
 
-    alpha: Callable[..., tuple[Tensor, Tensor, Tensor]] = pair_alpha
+    alpha: Callable[..., tuple[Tensor, ...]] = pair_alpha
     accumulate: Callable[..., Tensor] = forward_accumulate
     backward_terms: Callable[..., Tensor] = backward_pair_terms
     scatter: Callable[..., Tensor] = backward_scatter
@@ -218,47 +251,54 @@ class _Composite(torch.autograd.Function):
         dtype, dev = mx.dtype, mx.device
         ctx.kernels = kernels
         M = mx.shape[0]
-        cols = torch.cat([colors.t(), depths[None]]).contiguous()  # [4, M]
-        conic = torch.stack([ca, cb, cc])  # [3, M]
+        ctx.M = M
         if pix.numel() == 0:  # nothing drawn: keep the graph (means2d.grad becomes zeros, not None)
             ctx.empty = True
-            ctx.M = M
             z = torch.zeros(num_pixels, dtype=dtype, device=dev)
             return torch.zeros(num_pixels, 3, dtype=dtype, device=dev), torch.ones_like(z), z
         ctx.empty = False
-        dx, dy, alpha = kernels.alpha(mx, my, ca, cb, cc, op, ent, pix, width)  # [P]; alpha 0 = no contribution
-        log1m = torch.log1p(-alpha).double()
-        cs = torch.cumsum(log1m, 0)  # float64: a float32 running sum over all pairs would lose the digits
-        counts = torch.bincount(pix, minlength=num_pixels)
-        first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
-        excl = cs - log1m
-        base = excl.index_select(0, first).index_select(0, pix)  # running sum before each pixel's segment
-        # Early termination: a pair counts only while T after it stays > 1e-4; that is a prefix of every pixel's
-        # segment (usually nearly all of it), so the rest is switched off rather than removed.
-        alpha = torch.where((cs - base) > LOG_T_MIN, alpha, torch.zeros_like(alpha))
-        T = torch.exp((excl - base).to(dtype))  # transmittance before each pair
-        acc = kernels.accumulate(cols, ent, counts, T, alpha)  # [num_pixels, 5]
+        px, py = pixel_centres(num_pixels, width, dtype, dev)
+        px, py = px.index_select(0, pix), py.index_select(0, pix)
+        dx, dy, alpha = kernels.alpha(mx, my, ca, cb, cc, op, ent, px, py)  # [P]; alpha 0 = no contribution
+        alpha, log1m, T, counts = pair_transmittance(alpha, pix, num_pixels)
+        pair_cols = torch.stack([colors[:, 0], colors[:, 1], colors[:, 2], depths]).index_select(1, ent)  # [4, P]
+        acc = kernels.accumulate(pair_cols, counts, T, alpha, log1m)  # [num_pixels, 5]
         T_final = torch.exp(acc[:, 4])
-        ctx.save_for_backward(conic, op, cols, ent, pix, counts, dx, dy, alpha, T, T_final)
+        ctx.save_for_backward(ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final)
+        ctx.set_materialize_grads(False)  # an unused output (depth, usually) gets no backward work
         return acc[:, :3], T_final, acc[:, 3]
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, g_rgb: Tensor, g_T: Tensor, g_depth: Tensor):  # type: ignore[override]
+    def backward(ctx: Any, g_rgb: Tensor | None, g_T: Tensor | None, g_depth: Tensor | None):  # type: ignore[override]
         nones = (None,) * 5
+        M = ctx.M
+        given = [g for g in (g_rgb, g_T, g_depth) if g is not None]
+        if not given:
+            return (None,) * 8 + nones
         if ctx.empty:
-            z = g_T.new_zeros(ctx.M)
-            return z, z, z, z, z, z, g_T.new_zeros(ctx.M, 3), z, *nones
-        conic, op, cols, ent, pix, counts, dx, dy, alpha, T, T_final = ctx.saved_tensors
+            z = given[0].new_zeros(M)
+            return z, z, z, z, z, z, given[0].new_zeros(M, 3), z, *nones
+        ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final = ctx.saved_tensors
         k: Kernels = ctx.kernels
-        grads = torch.cat([g_rgb.t(), g_depth[None], g_T[None]]).contiguous()  # [5, num_pixels]
-        v = k.backward_terms(cols, grads, ent, pix, T, alpha)
-        cs = torch.cumsum((T * alpha * v).double(), 0)
+        num_pixels = T_final.shape[0]
+        if g_rgb is None:
+            g_rgb = T_final.new_zeros(num_pixels, 3)
+        rows = [g_rgb.t()] if g_depth is None else [g_rgb.t(), g_depth[None]]
+        grads = torch.cat(rows).contiguous()  # [K, num_pixels], K = 3 or 4 (with depth)
+        K = grads.shape[0]
+        tail = T_final * g_T if g_T is not None else torch.zeros_like(T_final)
+        v = k.backward_terms(pair_cols[:K], grads, pix)
+        w = T * alpha
+        cs = torch.cumsum((w * v).double(), 0)
         last = (torch.cumsum(counts, 0) - 1).clamp_min(0)
-        after = (cs.index_select(0, last).index_select(0, pix) - cs).to(T.dtype)  # sum of w * v over later pairs
-        acc = k.scatter(conic, op, grads, T_final, ent, pix, dx, dy, alpha, T, v, after)
-        g = acc.unbind(0)
-        return (*g[:6], acc[6:9].t(), g[9], *nones)
+        after = cs.index_select(0, last).index_select(0, pix).sub_(cs).to(T.dtype)  # sum of w * v over later pairs
+        acc = k.scatter(M, grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
+        s_x, s_y, s_xx, s_xy, s_yy, s_g = acc[:6]
+        g_mx, g_my = ca * s_x + cb * s_y, cb * s_x + cc * s_y  # d sigma / d mean2d = (a dx + b dy, b dx + c dy)
+        g_op = -s_g / op  # d alpha / d opacity = alpha / opacity, and s_g sums -alpha dL/dalpha
+        g_depth_out = acc[9] if K == 4 else torch.zeros_like(g_op)
+        return g_mx, g_my, s_xx, s_xy, s_yy, g_op, acc[6:9].t(), g_depth_out, *nones
 
 
 def composite(
@@ -295,7 +335,13 @@ def composite(
     num_pixels = num_cameras * height * width
     with torch.no_grad():
         ent, pix = enumerate_pairs(means2d.detach(), conics.detach(), opacities.detach(), half, cam, width, height)
-        pix, perm = torch.sort(pix, stable=True)  # stable: pairs were in depth order within each pixel
+        # Stable: pairs were in depth order within each pixel. The CPU sort's cost follows the key width, so the keys
+        # are the narrowest integers that hold every pixel index (measured on 707k pairs: int16 8 ms, int32 18 ms,
+        # int64 38 ms); indexing stays int64 (int32 index tensors made the gathers slower).
+        shift = 2**15 if num_pixels <= 2**16 else 0
+        key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
+        keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)
+        pix = keys.long() + shift
         ent = ent.index_select(0, perm)
     return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width, kernels)
 
@@ -383,3 +429,48 @@ class TorchRefRasterizer(Rasterizer):
             means2d=means2d,
             radii=proj.radii,
         )
+
+    @torch.no_grad()
+    def max_blend_weights(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        cameras: Cameras,
+        *,
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> Tensor:
+        """[N] the largest blending weight T * alpha each Gaussian reaches at any pixel of any camera (pruning).
+
+        The same pairs, alphas and early termination as `render`, with no colours, no autograd and a max in place of
+        the colour sums, so it is a separate pass that the training step never runs."""
+        C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
+        dtype, dev = means.dtype, means.device
+        out = torch.zeros(N, dtype=dtype, device=dev)
+        proj = project_gaussians(
+            means, quats, scales, opacities, cameras.K.to(dev, dtype), cameras.world_to_cam.to(dev, dtype), W, H,
+            near=near, far=far,
+        )  # fmt: skip
+        flat_valid = torch.nonzero(proj.valid.reshape(-1)).squeeze(1)
+        flat = flat_valid[torch.argsort(proj.depths.reshape(-1)[flat_valid], stable=True)]  # depth order
+        if flat.numel() == 0:
+            return out
+        cam = torch.div(flat, N, rounding_mode="floor")
+        gid = flat - cam * N
+        means2d = proj.means2d.reshape(-1, 2).index_select(0, flat)
+        conics = proj.conics.reshape(-1, 3).index_select(0, flat)
+        op = opacities.index_select(0, gid)
+        ent, pix = enumerate_pairs(means2d, conics, op, proj.half_extents.reshape(-1, 2).index_select(0, flat), cam,
+                                   W, H)  # fmt: skip
+        if pix.numel() == 0:
+            return out
+        pix, perm = torch.sort(pix, stable=True)
+        ent = ent.index_select(0, perm)
+        my = means2d[:, 1] + cam.to(dtype) * H
+        px, py = pixel_centres(C * H * W, W, dtype, dev)
+        _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, px.index_select(0, pix),
+                                 py.index_select(0, pix))  # fmt: skip
+        alpha, _, T, _ = pair_transmittance(alpha, pix, C * H * W)
+        return out.scatter_reduce_(0, gid.index_select(0, ent), T * alpha, reduce="amax")

@@ -151,11 +151,19 @@ class ZjuWriter:
                 shutil.copyfile(src, tmp)
         self._write_masks_and_body(frame, np.asarray(masks), params, vertices)
 
+    def write_masks(self, frame: int, masks: np.ndarray, mask_dir: str) -> None:
+        """Masks [C, H, W] (foreground non-zero) of one frame into `mask_dir` (e.g. a second, parser-made set in
+        mask_cihp/ next to mask/, as ZJU-MoCap ships both). Written atomically; write them before `write_frame` /
+        `copy_frame` of the same frame, which marks the frame done."""
+        if mask_dir not in MASK_DIRS:
+            raise ValueError(f"mask_dir must be one of {MASK_DIRS}, got '{mask_dir}'")
+        for v in range(self.num_cameras):
+            m = (np.asarray(masks[v]) != 0).astype(np.uint8) * np.uint8(self.mask_value)
+            write_image(self.root / mask_dir / mask_relpath(self.image_path(frame, v)), m)
+
     def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
                               vertices: np.ndarray | None) -> None:  # fmt: skip
-        for v in range(self.num_cameras):
-            m = (masks[v] != 0).astype(np.uint8) * np.uint8(self.mask_value)
-            write_image(self.root / self.mask_dir / mask_relpath(self.image_path(frame, v)), m)
+        self.write_masks(frame, masks, self.mask_dir)
         n = self.file_number(frame)
         if params is not None:
             save_pickled_dict(self.root / "params" / f"{n}.npy", normalize_params(params, f"frame {frame}"))

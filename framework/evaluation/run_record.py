@@ -1,0 +1,82 @@
+"""The per-run results record: `<run dir>/results.json`, written at the end of training, read by `framework.report`.
+
+One JSON object per run, so a sweep's runs can be collected from any number of sweep directories (a sweep run in
+parts) and reports of several kinds read the same data. Schema "splatrig.run/1":
+
+    schema          "splatrig.run/1"
+    experiment      the config's task_name (the Table 4 row, e.g. "no_corrector")
+    config_name     Hydra's primary config ("train", or a sweep such as "ablations")
+    overrides       the job's command-line / sweep overrides, as Hydra lists them (["+experiment=...", "seed=1", ...])
+    seed            the run's seed
+    profile, data   the hardware profile's name and the dataset's registry name
+    steps           training steps done; max_steps: the steps asked for
+    train_seconds   wall time of training (trainer.fit); run_seconds: of the whole run (setup, training, evaluation)
+    train_cpu_seconds  CPU time of training, all threads (on a shared machine a steadier measure than wall time)
+    num_gaussians   Gaussians at the end of training
+    metrics         {split: {"image": {metric: mean}, "body_box": {metric: mean}}}: whole-image metrics (the paper's)
+                    and body-box metrics (Neural Body / Animatable NeRF; framework.evaluation.body_box), averaged
+                    over the split's images; e.g. metrics["novel_pose"]["body_box"]["psnr"]
+    code            {"version": package version, "commit": git commit of the checkout or null}
+    created         ISO 8601 time the record was written
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+from framework.errors import SplatrigError
+from framework.paths import atomic_write_text
+
+SCHEMA = "splatrig.run/1"
+FILENAME = "results.json"
+REGIONS = {"image": "", "body_box": "bbox/"}  # region -> the infix of evaluate_module's summary keys
+
+
+def metrics_from_summary(summary: dict[str, float]) -> dict[str, dict[str, dict[str, float]]]:
+    """evaluate_module's {"novel_view/psnr": x, "novel_view/bbox/psnr": y, ...} -> {split: {region: {metric: v}}}."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for key, value in summary.items():
+        split, _, rest = key.partition("/")
+        region = "body_box" if rest.startswith(REGIONS["body_box"]) else "image"
+        name = rest[len(REGIONS[region]) :]
+        out.setdefault(split, {}).setdefault(region, {})[name] = float(value)
+    return out
+
+
+def _commit() -> str | None:
+    try:
+        done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, text=True,
+                              capture_output=True, timeout=10)  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if done.returncode != 0:
+        return None
+    return done.stdout.strip() or None
+
+
+def write_run_record(run_dir: Path, **fields: Any) -> Path:
+    """Write results.json into `run_dir` (atomically); `fields` are the schema's keys except schema/code/created."""
+    from framework import __version__
+
+    record = {"schema": SCHEMA, **fields, "code": {"version": __version__, "commit": _commit()},
+              "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
+    return atomic_write_text(Path(run_dir) / FILENAME, json.dumps(record, indent=1) + "\n")
+
+
+def load_run_record(path: Path) -> dict[str, Any]:
+    """Read and check one results.json."""
+    path = Path(path)
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise SplatrigError(f"{path}: not valid JSON ({exc}); delete it or re-run that job.") from None
+    if record.get("schema") != SCHEMA:
+        raise SplatrigError(
+            f"{path}: expected a run record with schema '{SCHEMA}', found schema {record.get('schema')!r}; it was "
+            f"written by another version, re-run that job with this one."
+        )
+    return record

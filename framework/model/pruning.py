@@ -1,0 +1,92 @@
+"""Learned pruning of a trained avatar: Gaussians that never show, SH bands that carry no colour.
+
+Why after training: densification grows Gaussians wherever a gradient asked for them, and opacity-based pruning during
+training only sees opacity, not visibility. What a Gaussian really adds to an image is its blending weight T * alpha;
+one whose largest weight over every training view and pose stays below a threshold (default 1/255, one level of an
+8-bit image even on a white background) can go. The weights come from the rasterizer's `max_blend_weights`, a pass
+outside the training step (`torch_ref` has one; other backends fall back to it).
+
+SH bands: band l of a Gaussian changes its colour by an amount whose root mean square over all view directions is
+sqrt(sum_m c_lm^2 / 4 pi) per channel (real SH are orthonormal on the sphere). Bands are dropped from the top while
+that RMS, averaged over Gaussians, stays below a tolerance in colour units (default 1/255).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import torch
+from torch import Tensor
+
+from framework.interfaces.rasterizer import Rasterizer
+from framework.model.avatar import Avatar, GaussianParams
+from framework.model.optim_surgery import keep_rows, update_params
+from framework.types import FrameBatch
+
+DEFAULT_MIN_WEIGHT = 1.0 / 255.0
+DEFAULT_SH_TOLERANCE = 1.0 / 255.0
+
+
+def contribution_rasterizer(avatar: Avatar) -> Rasterizer:
+    """The avatar's own rasterizer when it reports blending weights, else `torch_ref`."""
+    if type(avatar.rasterizer).max_blend_weights is not Rasterizer.max_blend_weights:
+        return avatar.rasterizer
+    from framework.plugins import load_plugins
+    from framework.registry import RASTERIZERS
+
+    load_plugins()
+    return RASTERIZERS.build("torch_ref")
+
+
+@torch.no_grad()
+def max_contributions(avatar: Avatar, batches: Iterable[FrameBatch], rasterizer: Rasterizer | None = None) -> Tensor:
+    """[N] each canonical Gaussian's largest blending weight over every (pose, camera) of `batches`, computed with
+    the pose-corrected, posed Gaussians the avatar renders."""
+    raster = rasterizer or contribution_rasterizer(avatar)
+    was_training = avatar.training
+    avatar.eval()
+    best = torch.zeros(avatar.gaussians.num, device=avatar.gaussians.params["means"].device)
+    for batch in batches:
+        _, posed, _ = avatar.pose(batch)
+        w = raster.max_blend_weights(
+            posed.means, posed.quats, torch.exp(posed.log_scales), torch.sigmoid(posed.opacity_logits), batch.cameras
+        )
+        best = torch.maximum(best, w.to(best.dtype))
+    avatar.train(was_training)
+    return best
+
+
+def prune_gaussians(params: GaussianParams, keep: Tensor) -> int:
+    """Keep the Gaussians selected by the bool mask `keep` [N]; returns how many were removed."""
+    before = params.num
+    keep_rows(params.params, None, keep)
+    return before - params.num
+
+
+def sh_band_rms(shN: Tensor) -> list[float]:
+    """RMS colour change over view directions of each band l >= 1, averaged over Gaussians and channels.
+
+    shN [N, K - 1, 3]: the coefficients after the DC term (band l holds rows l^2 - 1 .. (l + 1)^2 - 2)."""
+    out = []
+    degree = int(round(math.sqrt(shN.shape[1] + 1))) - 1
+    for band in range(1, degree + 1):
+        rows = shN[:, band * band - 1 : (band + 1) ** 2 - 1]  # [N, 2l + 1, 3]
+        per_gaussian = (rows.detach().double() ** 2).sum(1) / (4 * math.pi)  # [N, 3] mean square over the sphere
+        out.append(float(per_gaussian.sqrt().mean()) if rows.shape[0] else 0.0)
+    return out
+
+
+def negligible_sh_degree(shN: Tensor, tolerance: float = DEFAULT_SH_TOLERANCE, floor: int = 0) -> int:
+    """The lowest degree (>= floor) such that every band above it has an RMS colour change below `tolerance`."""
+    rms = sh_band_rms(shN)
+    degree = len(rms)
+    while degree > floor and rms[degree - 1] < tolerance:
+        degree -= 1
+    return degree
+
+
+def drop_sh_bands(params: GaussianParams, degree: int) -> None:
+    """Keep SH coefficients up to `degree` (shN keeps (degree + 1)^2 - 1 rows)."""
+    keep = (degree + 1) ** 2 - 1
+    update_params(params.params, None, lambda _n, p: p[:, :keep], lambda _k, v: v[:, :keep], names=["shN"])

@@ -1,0 +1,56 @@
+"""`python -m framework.profile data=NAME [data.root=...]`: what a capture needs, measured from the data alone.
+
+Prints the scene profile (which joints move, views, frames, silhouette area, view- and pose-dependent colour, how
+well the body mesh follows the masks) and what `+scene=auto` would choose from it, and writes the profile as YAML
+beside the dataset (training with `scene.profile=true` or `+scene=auto` reads it back instead of measuring again).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as framework.train: no spinning OpenMP threads on a busy CPU
+
+from omegaconf import DictConfig
+
+from framework.errors import reported_as_message
+
+
+def run(cfg: DictConfig) -> None:
+    from framework.build import build_component
+    from framework.plugins import load_plugins
+    from framework.scene.auto import choose
+    from framework.scene.profile import cached_profile, profile_body
+
+    load_plugins()
+    dataset = build_component("dataset", cfg.data, group="data", split="train")
+    body = profile_body(cfg.body, dataset)
+    s = cfg.scene
+    profile, path, cached = cached_profile(dataset, body, max_frames=int(s.max_frames), blur_px=float(s.blur_px),
+                                           moving_deg=float(s.moving_deg), force=bool(cfg.force))  # fmt: skip
+    print(profile.report())
+    print(f"  profile {'read from' if cached else 'written to'} {path}\n")
+    root = body.joint_names[body.parents.tolist().index(-1)]
+    print("what +scene=auto would choose (thresholds: conf/scene/auto.yaml):")
+    for choice in choose(profile, dict(s.thresholds), root_joint=root):
+        print(f"  {choice.line()}")
+
+
+def main() -> None:
+    import hydra
+
+    from framework.train import choose_profile
+
+    sys.argv = choose_profile(sys.argv)  # the synthetic studio's size follows the hardware profile, as in training
+
+    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="scene_profile")
+    def _main(cfg: DictConfig) -> None:
+        with reported_as_message():
+            run(cfg)
+
+    _main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,46 @@
+"""`python -m framework.prune ckpt=PATH [out=PATH] [min_weight=...] [sh_tolerance=...]`: a compact model for inference.
+
+Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
+whose colour change is negligible, bakes F_dw into per-Gaussian weights, and prints Gaussians, size, render fps and
+PSNR before and after (`framework.scene.compact`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as framework.train: no spinning OpenMP threads on a busy CPU
+
+from omegaconf import DictConfig
+
+from framework.errors import reported_as_message
+
+
+def main() -> None:
+    import hydra
+
+    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="prune")
+    def _main(cfg: DictConfig) -> None:
+        with reported_as_message():
+            from framework.scene.compact import prune_checkpoint
+
+            report = prune_checkpoint(
+                cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
+                max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup),
+                repeats=int(cfg.repeats), device=cfg.device,
+            )  # fmt: skip
+            print(f"\n{report.table()}\n")
+            print(f"[splatrig] removed {report.removed_gaussians} Gaussians (max blending weight < "
+                  f"{report.min_weight:.4g}); SH band RMS {[round(x, 5) for x in report.sh_band_rms]}; "
+                  f"F_dw {'baked' if report.weights_baked else 'absent'}; device {report.device}")  # fmt: skip
+            print(f"[splatrig] compact model: {report.out}")
+            if cfg.json:
+                Path(cfg.json).write_text(json.dumps(report.to_dict(), indent=1))
+
+    _main()
+
+
+if __name__ == "__main__":
+    main()

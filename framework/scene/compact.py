@@ -1,0 +1,292 @@
+"""Compact a trained avatar for inference: learned pruning (`framework.model.pruning`), F_dw baked into per-Gaussian
+weights, training-only state dropped; with a before/after report (Gaussians, size, render speed, PSNR).
+
+`prune_checkpoint(ckpt, out)` writes a checkpoint every entry point loads as usual (evaluate, render,
+tools/bench_render.py): the config stored in it is updated to what the compact model is (SH degree, `deformer=lbs`
+once F_dw is baked), and the optimizer state, which only resuming needs, is left out.
+
+Measurements, as tools/bench_render.py takes them (`framework.model.frame_timing`): novel-pose fps renders a new
+pose every frame (F_a, LBS with baked weights, rasterisation) from the novel-pose split's frames and cameras; novel-view
+fps renders one pose from changing cameras (posed Gaussians cached). PSNR is over whole images of each split.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from framework.errors import SplatrigError
+from framework.model.frame_timing import time_frames
+from framework.model.pruning import (
+    DEFAULT_MIN_WEIGHT,
+    DEFAULT_SH_TOLERANCE,
+    drop_sh_bands,
+    max_contributions,
+    negligible_sh_degree,
+    prune_gaussians,
+    sh_band_rms,
+)
+from framework.types import FrameBatch
+
+
+@dataclass
+class ModelMeasure:
+    """Size, speed and quality of one model."""
+
+    num_gaussians: int
+    sh_degree: int
+    model_bytes: int  # learned tensors (the body's mesh, rebuilt from its config, is not counted)
+    file_bytes: int | None
+    novel_pose_fps: float | None
+    novel_view_fps: float | None
+    psnr: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PruneReport:
+    ckpt: str
+    out: str
+    before: ModelMeasure
+    after: ModelMeasure
+    removed_gaussians: int
+    min_weight: float
+    sh_band_rms: list[float]
+    sh_tolerance: float
+    weights_baked: bool
+    device: str
+
+    def table(self) -> str:
+        from framework.plugins import format_table
+
+        def ratio(a: float | None, b: float | None, inverse: bool = False) -> str:
+            if not a or not b:
+                return "-"
+            return f"{(a / b if inverse else b / a):.2f}x"
+
+        b, a = self.before, self.after
+        rows = [
+            ("Gaussians", str(b.num_gaussians), str(a.num_gaussians), ratio(b.num_gaussians, a.num_gaussians, True)),
+            ("SH degree", str(b.sh_degree), str(a.sh_degree), ""),
+            ("model (learned) MiB", f"{b.model_bytes / 2**20:.2f}", f"{a.model_bytes / 2**20:.2f}",
+             ratio(b.model_bytes, a.model_bytes, True)),  # fmt: skip
+            ("checkpoint file MiB", _mib(b.file_bytes), _mib(a.file_bytes), ratio(b.file_bytes, a.file_bytes, True)),
+            ("novel-pose fps", _num(b.novel_pose_fps), _num(a.novel_pose_fps),
+             ratio(b.novel_pose_fps, a.novel_pose_fps)),
+            ("novel-view fps", _num(b.novel_view_fps), _num(a.novel_view_fps),
+             ratio(b.novel_view_fps, a.novel_view_fps)),
+        ]  # fmt: skip
+        for split in b.psnr:
+            pb, pa = b.psnr[split], a.psnr.get(split)
+            rows.append((f"{split} PSNR dB", f"{pb:.3f}", _num(pa, 3), "-" if pa is None else f"{pa - pb:+.3f}"))
+        return format_table(rows, ("", "before", "after", "change"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _mib(n: int | None) -> str:
+    return "-" if n is None else f"{n / 2**20:.2f}"
+
+
+def _num(x: float | None, digits: int = 1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+# ------------------------------------------------------------------------------------------------- loading
+def load_checkpoint_module(path: str | Path, device: str = "cpu"):
+    from framework.lightning.module import SplatModule
+    from framework.plugins import load_plugins
+
+    if not Path(path).is_file():
+        raise SplatrigError(f"ckpt={path}: no such checkpoint file (look in a run's checkpoints/ folder).")
+    load_plugins()
+    module = SplatModule.load_from_checkpoint(str(path), map_location=device, weights_only=False)
+    return module.eval()
+
+
+def checkpoint_datamodule(module):
+    """The splits of the dataset the module was trained on (rebuilt from its stored config)."""
+    from framework.build import build_component
+    from framework.lightning.data import FrameDataModule
+
+    data = module.cfg["data"]
+    return FrameDataModule(lambda split: build_component("dataset", data, group="data", split=split))
+
+
+def model_bytes(module) -> int:
+    """Bytes of the learned tensors: Gaussians, networks, pose refinement (the body mesh buffers are left out)."""
+    return sum(t.numel() * t.element_size() for k, t in module.state_dict().items() if not k.startswith("avatar.body."))
+
+
+def _distinct_frame_items(dataset, limit: int) -> list[int]:
+    """Item indices of up to `limit` different frames, spread over the split (one view each)."""
+    seen: dict[int, int] = {}
+    for i in range(len(dataset)):
+        frame = dataset.sample(i)[0] if hasattr(dataset, "sample") else int(dataset[i].frame[0])
+        seen.setdefault(frame, i)
+    items = list(seen.values())
+    step = max(1, len(items) // max(limit, 1))
+    return items[::step][:limit]
+
+
+# ------------------------------------------------------------------------------------------------- measuring
+@torch.no_grad()
+def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_pose"), warmup: int = 3,
+                   repeats: int = 10, file_bytes: int | None = None) -> ModelMeasure:  # fmt: skip
+    """Gaussian count, learned size, novel-pose / novel-view fps (bench_render's rules) and PSNR per split."""
+    from framework.lightning.data import collate_frames
+    from framework.plugins import load_plugins
+    from framework.registry import METRICS
+
+    load_plugins()
+    module.eval()
+    device = module.device
+    psnr_metric = METRICS.build("psnr")
+    psnr: dict[str, float] = {}
+    for split in splits:
+        try:
+            dataset = dm.split(split)
+        except SplatrigError:
+            continue
+        values = []
+        for i in range(len(dataset)):
+            batch = collate_frames([dataset[i]]).to(device)
+            rgb = module.render_batch(batch).render.rgb.clamp(0, 1)
+            values.append(float(psnr_metric(rgb, batch.image)[0]))
+        psnr[split] = sum(values) / max(len(values), 1)
+    pose_fps = view_fps = None
+    timing_split = "novel_pose" if "novel_pose" in psnr else next(iter(psnr), None)
+    if timing_split is not None and repeats > 0:
+        dataset = dm.split(timing_split)
+        batches = [dataset[i].to(device) for i in _distinct_frame_items(dataset, warmup + repeats)]
+        if len(batches) < 2:  # a tiny split: borrow poses from the training frames (any two poses differ)
+            train = dm.train_set
+            batches += [train[i].to(device) for i in _distinct_frame_items(train, warmup + repeats)]
+        sh_degree = module.sh_degree(module.trained_steps())
+        avatar = module.avatar
+
+        def new_pose(i: int) -> None:  # consecutive frames differ, so the posed-Gaussian cache never answers
+            avatar(batches[i % len(batches)], sh_degree=sh_degree)
+
+        cams = dataset.cameras.to(device)
+        first = batches[0]
+
+        def new_view(i: int) -> None:
+            view = FrameBatch(first.image, first.mask, first.boundary, cams.index(i % cams.num), first.frame,
+                              first.pose, first.root, first.betas, first.view)  # fmt: skip
+            avatar(view, sh_degree=sh_degree)
+
+        pose_fps = 1.0 / time_frames(new_pose, warmup, repeats, device)
+        view_fps = 1.0 / time_frames(new_view, warmup, repeats, device)
+    return ModelMeasure(
+        num_gaussians=module.avatar.gaussians.num,
+        sh_degree=module.sh_degree(module.trained_steps()),
+        model_bytes=model_bytes(module),
+        file_bytes=file_bytes,
+        novel_pose_fps=pose_fps,
+        novel_view_fps=view_fps,
+        psnr=psnr,
+    )
+
+
+# ------------------------------------------------------------------------------------------------- compacting
+def bake_weight_residual(module) -> bool:
+    """Store the final blend weights per Gaussian and drop F_dw (the stored config becomes `deformer=lbs`)."""
+    from framework.scene.auto import group_option
+
+    if not module.bake_weights():
+        return False
+    deformer = module.avatar.deformer
+    if getattr(deformer, "mlp", None) is not None:
+        deformer.mlp = None  # unused once weights are baked; its parameters leave the checkpoint
+        module.cfg["deformer"] = group_option("deformer", "lbs", module.cfg["deformer"])
+    return True
+
+
+@torch.no_grad()
+def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
+                 max_frames: int | None = None) -> tuple[int, list[float]]:  # fmt: skip
+    """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses, then the
+    SH bands whose RMS colour change is below `sh_tolerance`. Returns (Gaussians removed, band RMS before)."""
+    from framework.lightning.data import collate_frames
+
+    dataset = dm.train_set
+    frames = sorted({dataset.sample(i)[0] for i in range(len(dataset))}) if hasattr(dataset, "sample") else None
+    if max_frames and frames and len(frames) > max_frames:
+        keep = {frames[int(round(k))] for k in torch.linspace(0, len(frames) - 1, max_frames).tolist()}
+    else:
+        keep = None
+
+    def batches():
+        for i in range(len(dataset)):
+            if keep is not None and dataset.sample(i)[0] not in keep:
+                continue
+            yield collate_frames([dataset[i]]).to(module.device)
+
+    weights = max_contributions(module.avatar, batches())
+    removed = prune_gaussians(module.avatar.gaussians, weights >= min_weight)
+    params = module.avatar.gaussians
+    rms = sh_band_rms(params.params["shN"])
+    corrector_cfg = module.cfg.get("corrector") or {}
+    floor = int(corrector_cfg.get("sh_degree", 3)) if corrector_cfg.get("all_sh") else 0
+    current = module.sh_degree(module.trained_steps())  # bands above it are stored but never rendered
+    degree = min(negligible_sh_degree(params.params["shN"], sh_tolerance, floor=floor), current)
+    if degree < current:
+        drop_sh_bands(params, degree)
+        module.cfg["gaussians"]["sh_degree"] = degree
+    return removed, rms
+
+
+def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path) -> None:
+    """The module as a checkpoint for inference: weights, updated config, step count; no optimizer state."""
+    hparams = dict(source.get("hyper_parameters", {}))
+    hparams["cfg"] = module.cfg
+    kept = ("epoch", "global_step", "pytorch-lightning_version", "hparams_name")
+    ckpt = {key: source[key] for key in kept if key in source}
+    ckpt.update(
+        state_dict={k: v.detach().cpu() for k, v in module.state_dict().items()},
+        hyper_parameters=hparams,
+        densifier_state={},
+        splatrig_stage=source.get("splatrig_stage", {}),
+    )
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(f"{out_path.name}.{os.getpid()}.tmp")
+    torch.save(ckpt, tmp)
+    os.replace(tmp, out_path)
+
+
+def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, *,
+                     min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
+                     max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
+                     device: str | None = None) -> PruneReport:  # fmt: skip
+    """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
+    measure the model before and after (the written file is loaded back for the "after" numbers)."""
+    ckpt_path = Path(ckpt_path)
+    out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
+    if out.resolve() == ckpt_path.resolve():
+        raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    module = load_checkpoint_module(ckpt_path, device)
+    dm = checkpoint_datamodule(module)
+    source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    module.bake_weights()  # as tools/bench_render.py: the real-time path uses baked weights, before and after
+    reps = repeats if measure else 0
+    before = measure_module(module, dm, warmup=warmup, repeats=reps, file_bytes=ckpt_path.stat().st_size) \
+        if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
+    baked = bake_weight_residual(module)
+    removed, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames)
+    write_compact_checkpoint(module, source, out)
+    compact = load_checkpoint_module(out, device)
+    after = measure_module(compact, dm, warmup=warmup, repeats=reps, file_bytes=out.stat().st_size) \
+        if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
+    return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
+                       baked, str(device))  # fmt: skip
+
+
+def _size_only(module, file_bytes: int) -> ModelMeasure:
+    return ModelMeasure(module.avatar.gaussians.num, module.sh_degree(module.trained_steps()), model_bytes(module),
+                        file_bytes, None, None)  # fmt: skip

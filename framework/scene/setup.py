@@ -1,0 +1,103 @@
+"""What a training run does with `scene.*` before it builds the model: profile the data, apply `+scene=auto`'s
+choices (leaving keys the user set alone), hold frozen joints at their mean training rotation; and log it all."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from framework.scene.auto import Choice, apply_choices, choices_table, choose, override_keys
+from framework.scene.profile import SceneProfile, cached_profile, profile_body
+
+
+@dataclass
+class SceneSetup:
+    profile: SceneProfile | None = None
+    profile_path: Path | None = None
+    choices: list[Choice] = field(default_factory=list)
+    frozen_pose: dict[str, list[float]] = field(default_factory=dict)
+
+    def log(self, writer: Any, step: int = 0) -> None:
+        """The profile's numbers and each choice (value and the number it came from) in TensorBoard."""
+        if writer is None or not hasattr(writer, "add_scalar"):
+            return
+        if self.profile is not None:
+            p = self.profile
+            writer.add_text("scene/profile", "    " + p.report().replace("\n", "\n    "), step)
+            for name in ("view_dependence", "pose_dependence", "pose_noise", "skin_offset_px", "silhouette_px"):
+                writer.add_scalar(f"scene/profile/{name}", float(getattr(p, name)), step)
+            writer.add_scalar("scene/profile/moving_joints", float(len(p.moving_joints)), step)
+        if self.choices:
+            writer.add_text("scene/choices", choices_table(self.choices), step)
+            for c in self.choices:
+                value = len(c.value) if isinstance(c.value, list) else c.value
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    writer.add_scalar(f"scene/choice/{c.key}", float(value), step)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "profile": None if self.profile is None else self.profile.to_dict(),
+            "profile_path": None if self.profile_path is None else str(self.profile_path),
+            "choices": [
+                {
+                    "key": c.key,
+                    "value": c.value,
+                    "measure": c.measure,
+                    "rule": c.rule,
+                    "by_hand": c.overridden,
+                    "applied": c.applied,
+                }  # fmt: skip
+                for c in self.choices
+            ],
+            "frozen_pose": self.frozen_pose,
+        }
+
+
+def command_line_overrides() -> list[str]:
+    """This job's command-line overrides (empty outside a Hydra run)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:
+        return []
+
+
+def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bool = True) -> SceneSetup:
+    """Profile (scene.profile or scene.auto), apply auto's choices to `cfg` in place (scene.auto), and compute the
+    rotations frozen joints are held at (scene.frozen_joints, chosen or given)."""
+    from framework.build import build_component
+
+    scene = cfg.get("scene") or OmegaConf.create({})
+    setup = SceneSetup()
+    body = None
+    if scene.get("profile") or scene.get("auto"):
+        body = profile_body(cfg.body, train_set)
+        profile, path, cached = cached_profile(
+            train_set, body, max_frames=int(scene.get("max_frames", 12)), blur_px=float(scene.get("blur_px", 1.0)),
+            moving_deg=float(scene.get("moving_deg", 5.0)), progress=progress,
+        )  # fmt: skip
+        setup.profile, setup.profile_path = profile, path
+        print(f"[splatrig] {profile.report()}", file=sys.stderr)
+        print(f"[splatrig]   profile {'read from' if cached else 'written to'} {path}", file=sys.stderr)
+    if scene.get("auto"):
+        if setup.profile is None or body is None:
+            raise AssertionError("scene.auto needs the profile")
+        root = body.joint_names[int(body.parents.tolist().index(-1))]
+        choices = choose(setup.profile, dict(scene.thresholds), root_joint=root)
+        setup.choices = apply_choices(cfg, choices, override_keys(overrides))
+        for c in setup.choices:
+            print(f"[splatrig] scene=auto: {c.line()}", file=sys.stderr)
+    frozen = list(cfg.scene.frozen_joints or []) if "scene" in cfg else []
+    poses = train_set.poses()
+    if frozen and poses is not None:
+        from framework.model.frozen_body import frozen_constants
+
+        if body is None or body.registry_name != cfg.body.name:
+            body = build_component("body", cfg.body)
+        setup.frozen_pose = frozen_constants(poses[list(train_set.frame_ids)], body.joint_names, frozen)
+    return setup

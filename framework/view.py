@@ -1,0 +1,46 @@
+"""`python -m framework.view ckpt=...`: an interactive web viewer of a trained avatar (open the printed address).
+
+Orbit the camera with the mouse; scrub or play the training motion, the held-out motion or a motion file; pose joints
+by hand; switch the appearance corrector, the weight residual and the rasterizer; watch frames per second and the
+Gaussian count. The page is served by viser on `host:port` (localhost by default); see framework/viewer/.
+"""
+
+from __future__ import annotations
+
+from framework.errors import reported_as_message
+
+
+def main() -> int:
+    import hydra
+    from omegaconf import DictConfig
+
+    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="view")
+    def _main(cfg: DictConfig) -> None:
+        import torch
+
+        from framework.animation.camera_paths import subject_view
+        from framework.evaluate import datamodule_for, load_module
+        from framework.viewer.app import ViewerApp
+        from framework.viewer.session import ViewerSession
+
+        with reported_as_message():
+            device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
+            module = load_module(cfg.ckpt, map_location=str(device))
+            dm = datamodule_for(module)
+            session = ViewerSession(module, dm, cfg.motion, float(cfg.fps), cfg.rasterizer)
+            app = ViewerApp(session, str(cfg.host), int(cfg.port), int(cfg.resolution), subject_view(module, dm))
+            print(f"[splatrig] viewer at http://{cfg.host}:{app.port}  ({session.avatar.gaussians.num} Gaussians, "
+                  f"rasterizer {session.backend}; Ctrl-C to stop)", flush=True)  # fmt: skip
+            try:
+                app.run()
+            except KeyboardInterrupt:
+                pass
+            finally:
+                app.stop()
+
+    _main()
+    return 0
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""Learned pruning (`framework.model.pruning`): blending weights against the float64 reference, renders unchanged
+when only Gaussians that never show are removed, SH band energy against Monte-Carlo integration."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from framework.cameras import orbit_cameras
+from framework.model.avatar import Avatar, GaussianParams
+from framework.model.gaussian_init import from_body_surface
+from framework.model.pruning import (
+    drop_sh_bands,
+    max_contributions,
+    negligible_sh_degree,
+    prune_gaussians,
+    sh_band_rms,
+)
+from framework.plugins import load_plugins
+from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
+from framework.splat.sh import SH_C0, sh_basis
+from framework.testing.reference import reference_render
+from framework.types import Cameras, FrameBatch
+
+load_plugins()
+SIZE = 40
+
+
+def test_max_blend_weights_match_the_float64_reference():
+    """The largest T * alpha of each Gaussian equals d rgb / d colour of the brute-force float64 compositor (colour =
+    SH_C0 * c0 + 0.5 at degree 0), maximised over pixels and cameras: occluded, culled and overlapping Gaussians."""
+    gen = torch.Generator().manual_seed(0)
+    f64 = torch.float64
+    N = 8
+    means = 0.3 * torch.randn(N, 3, generator=gen, dtype=f64) + torch.tensor([0.0, 0.0, 3.0], dtype=f64)
+    means[0] = torch.tensor([0.0, 0.0, 2.5], dtype=f64)  # a large opaque sheet in front of the others
+    means[6] = torch.tensor([0.0, 0.0, 4.0], dtype=f64)  # behind the sheet
+    means[7] = torch.tensor([40.0, 0.0, 3.0], dtype=f64)  # outside every view
+    quats = torch.randn(N, 4, generator=gen, dtype=f64)
+    scales = 0.05 + 0.2 * torch.rand(N, 3, generator=gen, dtype=f64)
+    scales[0] = torch.tensor([0.8, 0.8, 0.05], dtype=f64)
+    opacities = 0.3 + 0.6 * torch.rand(N, generator=gen, dtype=f64)
+    opacities[0] = 0.995
+    K = torch.tensor([[12.0, 0, 6], [0, 12, 5], [0, 0, 1]], dtype=f64).expand(2, 3, 3)
+    w2c = torch.eye(4, dtype=f64).repeat(2, 1, 1)
+    w2c[1, 0, 3] = 0.4
+
+    def rgb_red(c0: torch.Tensor) -> torch.Tensor:
+        sh = torch.zeros(N, 1, 3, dtype=f64)
+        sh[:, 0, 0] = c0
+        return reference_render(means, quats, scales, opacities, sh, K, w2c, 12, 10, 0)["rgb"][..., 0]
+
+    jac = torch.autograd.functional.jacobian(rgb_red, torch.zeros(N, dtype=f64))  # [C, H, W, N]
+    expected = (jac / SH_C0).reshape(-1, N).amax(0)
+    got = RASTERIZERS.build("torch_ref").max_blend_weights(means, quats, scales, opacities, Cameras(K, w2c, 12, 10))
+    torch.testing.assert_close(got, expected, atol=1e-12, rtol=0)
+    assert expected[7] == 0 and 0 < expected[6] < 0.05 < expected[0]  # culled, behind the sheet, the sheet
+
+
+def _cameras() -> Cameras:
+    """Two views of the body, 3 m away, a quarter turn apart."""
+    return orbit_cameras(torch.tensor([0.0, 0.0, 0.3]), 3.0, 0.0, 4, SIZE, SIZE, fov_deg=50.0, turns=1.0).index(
+        slice(0, 2)
+    )
+
+
+def _batches(body, n: int = 3) -> list[FrameBatch]:
+    gen = torch.Generator().manual_seed(1)
+    z = torch.zeros(2, SIZE, SIZE)
+    out = []
+    for i in range(n):
+        pose = 0.3 * torch.randn(1, body.num_joints, 3, generator=gen)
+        out.append(FrameBatch(image=torch.zeros(2, SIZE, SIZE, 3), mask=z, boundary=z + 1, cameras=_cameras(),
+                              frame=torch.tensor([i]), pose=pose, root=torch.eye(4)[None]))  # fmt: skip
+    return out
+
+
+def _avatar(body, sh_degree: int = 0) -> Avatar:
+    g = from_body_surface(body, num=300, sh_degree=sh_degree, seed=0, opacity=0.7)
+    # two Gaussians that can never show: far outside every camera, and one too faint to reach alpha = 1/255
+    g.means = torch.cat([g.means, torch.tensor([[30.0, 0.0, 0.0], [0.0, 0.0, 0.2]])])
+    g.opacity_logits = torch.cat([g.opacity_logits, torch.tensor([2.0, -8.0])])
+    for name in ("quats", "log_scales", "sh", "latents"):
+        value = getattr(g, name)
+        setattr(g, name, torch.cat([value, value[:2]]))
+    deformer = DEFORMERS.build("lbs", grid_resolution=16, use_cache=False)
+    lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
+    deformer.bind(body, torch.stack([lo - 0.1, hi + 0.1]))
+    return Avatar(GaussianParams(g), RASTERIZERS.build("torch_ref"), CORRECTORS.build("none"), deformer, body).eval()
+
+
+def _renders(avatar, batches, sh_degree: int = 0) -> torch.Tensor:
+    with torch.no_grad():
+        return torch.stack([avatar(b, sh_degree=sh_degree).render.rgb for b in batches])
+
+
+def test_pruning_gaussians_that_never_show_leaves_renders_unchanged():
+    body = BODIES.build("procedural")
+    avatar, batches = _avatar(body), _batches(body)
+    before = _renders(avatar, batches)
+    weights = max_contributions(avatar, batches)
+    n = avatar.gaussians.num
+    assert weights[n - 2] == 0 and weights[n - 1] == 0  # the two planted ones
+    assert (weights > 0).sum() > 100
+    removed = prune_gaussians(avatar.gaussians, weights > 0)
+    assert removed >= 2 and avatar.gaussians.num == n - removed
+    torch.testing.assert_close(_renders(avatar, batches), before, atol=1e-6, rtol=0)
+    # and the comparison can fail: removing the Gaussian with the largest weight changes the image
+    top = torch.ones(avatar.gaussians.num, dtype=torch.bool)
+    top[int(max_contributions(avatar, batches).argmax())] = False
+    prune_gaussians(avatar.gaussians, top)
+    assert (_renders(avatar, batches) - before).abs().max() > 0.01
+
+
+def test_sh_band_rms_matches_monte_carlo_over_directions():
+    """RMS over the sphere of the colour a band adds, computed by sampling 100k directions through the SH basis."""
+    gen = torch.Generator().manual_seed(2)
+    sh = torch.zeros(5, 16, 3, dtype=torch.float64)
+    sh[:, 1:4] = 0.3 * torch.randn(5, 3, 3, generator=gen, dtype=torch.float64)
+    sh[:, 9:16] = 0.05 * torch.randn(5, 7, 3, generator=gen, dtype=torch.float64)
+    basis = sh_basis(3, torch.randn(100_000, 3, generator=gen, dtype=torch.float64))  # [D, 16]
+    rms = sh_band_rms(sh[:, 1:])
+    for band, (lo, hi) in enumerate(((1, 4), (4, 9), (9, 16)), start=1):
+        colour = torch.einsum("dk,nkc->ndc", basis[:, lo:hi], sh[:, lo:hi])  # [5, D, 3] the band's colour change
+        expected = colour.pow(2).mean(1).sqrt().mean().item()
+        assert rms[band - 1] == pytest.approx(expected, rel=0.02, abs=1e-12)
+    assert rms[1] == 0.0 and negligible_sh_degree(sh[:, 1:], tolerance=1e-3) == 3
+    assert negligible_sh_degree(sh[:, 1:], tolerance=0.05) == 1  # band 3 (~0.02) is dropped, band 1 (~0.1) kept
+    assert math.isclose(negligible_sh_degree(torch.zeros(3, 15, 3)), 0)
+
+
+def test_dropping_empty_sh_bands_leaves_renders_unchanged():
+    body = BODIES.build("procedural")
+    avatar, batches = _avatar(body, sh_degree=3), _batches(body, 2)
+    gen = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        avatar.gaussians.params["shN"][:, :3] = 0.2 * torch.randn(avatar.gaussians.num, 3, 3, generator=gen)
+    before = _renders(avatar, batches, sh_degree=3)
+    degree = negligible_sh_degree(avatar.gaussians.params["shN"])
+    assert degree == 1
+    drop_sh_bands(avatar.gaussians, degree)
+    assert avatar.gaussians.params["shN"].shape[1] == 3
+    torch.testing.assert_close(_renders(avatar, batches, sh_degree=degree), before, atol=1e-6, rtol=0)

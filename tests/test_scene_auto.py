@@ -1,0 +1,155 @@
+"""`+scene=auto` (`framework.scene.auto`): each choice follows its measurement, each can be set by hand, and an
+auto-chosen configuration trains; `python -m framework.prune` compacts what it trained."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from framework.scene.auto import apply_choices, choose, override_keys
+from framework.scene.profile import SceneProfile
+
+THRESHOLDS = {
+    "sh_view_dependence": [0.01, 0.02, 0.03],
+    "corrector_pose_dependence": 0.008,
+    "weight_residual_skin_offset_px": 0.75,
+    "gaussians_per_silhouette_px": 6.0,
+    "min_gaussians": 1000,
+    "max_gaussians_factor": 2.0,
+}
+
+
+def _profile(**changes) -> SceneProfile:
+    values = dict(
+        key="k", dataset="d", body="procedural", width=128, height=128, views=9, frames=48,
+        joints={"pelvis": 0.0, "spine": 12.0, "hand.L": 1.0, "head": 4.9}, moving_deg=5.0, silhouette_px=1000.0,
+        silhouette_fraction=0.06, silhouette_px_per_view={0: 1000.0}, view_dependence=0.005, pose_dependence=0.002,
+        pose_noise=0.001, skin_offset_px=0.2,
+    )  # fmt: skip
+    values.update(changes)
+    return SceneProfile(**values)
+
+
+def _by_key(choices):
+    return {c.key: c.value for c in choices}
+
+
+def test_choices_follow_the_profile_numbers():
+    simple = _by_key(choose(_profile(), THRESHOLDS, root_joint="pelvis"))
+    assert simple == {
+        "scene.frozen_joints": ["hand.L", "head"],  # still (<= 5 deg) and not the root
+        "gaussians.sh_degree": 0,
+        "corrector": "none",
+        "deformer": "lbs",
+        "gaussians.num": 6000,  # 6 per silhouette pixel
+        "densifier.max_gaussians": 12000,
+    }
+    demanding = _by_key(choose(_profile(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0,
+                                        silhouette_px=100.0), THRESHOLDS, "pelvis"))  # fmt: skip
+    assert demanding["gaussians.sh_degree"] == 2 and demanding["corrector"] is None and demanding["deformer"] is None
+    assert demanding["gaussians.num"] == 1000  # the floor
+    assert _by_key(choose(_profile(view_dependence=0.5), THRESHOLDS, "pelvis"))["gaussians.sh_degree"] == 3
+
+
+def _paper_full_auto(*extra: str):
+    with initialize_config_module(config_module="framework.conf", version_base="1.3"):
+        overrides = ["+experiment=paper_full", "+scene=auto", "profile=cpu", *extra]
+        return compose(config_name="train", overrides=overrides)
+
+
+def test_auto_composes_and_every_choice_can_be_overridden():
+    cfg = _paper_full_auto()
+    assert cfg.scene.auto and cfg.scene.profile and cfg.corrector.name == "latent"
+    choices = choose(_profile(), dict(cfg.scene.thresholds), "pelvis")
+    untouched = OmegaConf.to_container(cfg, resolve=False)
+    # by hand: every key auto would set, in the forms people type them
+    typed = ["scene.frozen_joints=[]", "gaussians.sh_degree=3", "corrector=latent", "deformer=lbs_residual",
+             "profile.num_gaussians=8000", "densifier.max_gaussians=15000"]  # fmt: skip
+    done = apply_choices(cfg, choices, override_keys(typed))
+    assert all(c.overridden and not c.applied for c in done)
+    assert OmegaConf.to_container(cfg, resolve=False) == untouched
+    # one at a time: only the key set by hand keeps its value, the others follow the profile
+    for i, key in enumerate(typed):
+        cfg = _paper_full_auto()
+        done = apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"), override_keys([key]))
+        assert [c.overridden for c in done] == [j == i for j in range(len(typed))]
+    assert cfg.corrector.name == "none" and cfg.deformer.name == "lbs" and cfg.gaussians.sh_degree == 0
+    assert cfg.deformer.grid_resolution == 64 and "hidden" not in cfg.deformer  # the lbs option, residual keys gone
+    # tuning a component's option is not choosing the component
+    cfg = _paper_full_auto("deformer.grid_resolution=32")
+    apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"),
+                  override_keys(["deformer.grid_resolution=32"]))  # fmt: skip
+    assert cfg.deformer.name == "lbs" and cfg.deformer.grid_resolution == 32
+
+
+TINY_AUTO = [
+    "+experiment=paper_full", "+scene=auto", "trainer.fast_dev_run=true", "body=procedural", "data.body=procedural",
+    "data.resolution=48", "data.views=6", "data.frames=8", "data.motion=arms", "data.supersample=1",
+    "deformer.grid_resolution=12", "callbacks.progress_bar=false", "threads=1", "scene.max_frames=3",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def auto_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """One fast_dev_run of paper_full + auto on an arms-only capture, with two of the choices set by hand."""
+    tmp = tmp_path_factory.mktemp("auto")
+    env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp / "cache"), PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "framework.train", *TINY_AUTO, "gaussians.sh_degree=2", "gaussians.num=321",
+           f"paths.root={tmp / 'out'}"]  # fmt: skip
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=tmp)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return next((tmp / "out" / "paper_full").glob("*")), proc
+
+
+def test_auto_configuration_trains_under_fast_dev_run_and_keeps_hand_set_keys(auto_run):
+    run, proc = auto_run
+    cfg = yaml.safe_load((run / "config_resolved.yaml").read_text())
+    joints = [
+        "spine",
+        "chest",
+        "neck",
+        "head",
+        "hand.L",
+        "hand.R",
+        "upperleg.L",
+        "lowerleg.L",
+        "foot.L",
+        "upperleg.R",
+        "lowerleg.R",
+        "foot.R",
+    ]  # every joint but the root and the four arm joints
+    assert cfg["scene"]["frozen_joints"] == joints
+    assert cfg["deformer"]["name"] == "lbs" and cfg["deformer"]["grid_resolution"] == 12  # F_dw off, tuning kept
+    assert cfg["gaussians"]["sh_degree"] == 2 and cfg["gaussians"]["num"] == 321  # set by hand, kept
+    assert "gaussians.sh_degree: set by hand" in proc.stderr and "scene profile of" in proc.stderr
+    scene = yaml.safe_load((run / "scene.yaml").read_text())
+    assert {c["key"] for c in scene["choices"] if c["by_hand"]} == {"gaussians.sh_degree", "gaussians.num"}
+    assert set(scene["frozen_pose"]) == set(joints)
+    events = list((run / "tb").rglob("events.out.tfevents.*"))
+    assert events and any(b"scene/choices" in e.read_bytes() for e in events)
+    assert (run / "checkpoints" / "final.ckpt").is_file() and (run / "train_stats.json").is_file()
+
+
+def test_prune_entry_point_writes_a_compact_model_that_loads(auto_run, tmp_path):
+    run, _ = auto_run
+    env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
+    out = tmp_path / "compact.ckpt"
+    cmd = [sys.executable, "-m", "framework.prune", f"ckpt={run / 'checkpoints' / 'final.ckpt'}", f"out={out}",
+           "warmup=1", "repeats=2", f"json={tmp_path / 'report.json'}"]  # fmt: skip
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "novel-pose fps" in proc.stdout and "novel_pose PSNR dB" in proc.stdout and out.is_file()
+    report = yaml.safe_load((tmp_path / "report.json").read_text())
+    before, after = report["before"], report["after"]
+    assert after["num_gaussians"] == before["num_gaussians"] - report["removed_gaussians"]
+    assert after["model_bytes"] <= before["model_bytes"] and after["sh_degree"] == 0  # one step: SH never switched on
+    # what pruning removed never reached 1/255 in a training view, so held-out renders barely move
+    for split, value in before["psnr"].items():
+        assert abs(after["psnr"][split] - value) < 0.05

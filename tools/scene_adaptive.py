@@ -1,0 +1,144 @@
+"""paper_full against `+scene=auto` (+ pruning) on three studio scenes that need different things; writes the table.
+
+    python tools/scene_adaptive.py --out outputs/scene_adaptive                 # the comparison (hardware profile)
+    python tools/scene_adaptive.py --out /tmp/scene_smoke --smoke               # the same commands, 50 steps
+
+Scenes (synthetic studio, `framework/data/studio.py`):
+- near_static: `data.motion=idle`, a slight nod and arm sway in matte (Lambertian) cloth;
+- walking: the default capture (walk, arm raises, squats, kicks; matte cloth with pose-dependent folds);
+- demanding: `data.look=glossy`, the default motion in cloth with a view-dependent highlight and deep pose-dependent
+  folds (the studio has no loose-garment layer on this branch; this is its strongest pose- and view-dependent look).
+Per scene: two trainings (`+experiment=paper_full` and `+experiment=paper_full +scene=auto`, subprocesses, run folders
+`<out>/<scene>/<variant>`), then in this process, one after the other: the paper_full model measured, the auto model
+pruned (`framework.scene.compact.prune_checkpoint`, which measures before and after). Speed follows
+tools/bench_render.py's rules; training time is the fit loop's wall time and peak memory the training process's peak
+RSS (CUDA: peak allocated), both from the run's `train_stats.json`. A finished training is not repeated (delete its
+folder to redo it), so an interrupted comparison resumes. Extra `--set key=value` overrides go to every training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+SCENES: dict[str, list[str]] = {
+    "near_static": ["data.motion=idle"],
+    "walking": [],
+    "demanding": ["data.look=glossy"],
+}
+VARIANTS: dict[str, list[str]] = {"paper_full": [], "auto": ["+scene=auto"]}
+#: the smoke run: the full commands at 50 steps, no evaluation inside training (the table measures PSNR itself)
+SMOKE = ["profile.max_steps=50", "profile.stage1_steps=20", "profile.densify_stop=40", "densifier.refine_start=10",
+         "densifier.refine_every=10", "trainer.val_every=50", "callbacks.image_every=1000",
+         "callbacks.checkpoint_every=1000", "eval.after_fit=false", "deformer.grid_resolution=32"]  # fmt: skip
+
+
+def train(run_dir: Path, overrides: list[str]) -> dict:
+    """Train into `run_dir` unless it already holds a finished run; returns its train_stats.json."""
+    stats, final = run_dir / "train_stats.json", run_dir / "checkpoints" / "final.ckpt"
+    if stats.is_file() and final.is_file():
+        print(f"[scene_adaptive] reusing {run_dir}", flush=True)
+        return json.loads(stats.read_text())
+    run_dir.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "framework.train", "+experiment=paper_full", *overrides, f"hydra.run.dir={run_dir}"]
+    print(f"[scene_adaptive] {' '.join(cmd[2:])}", flush=True)
+    t0 = time.perf_counter()
+    with open(run_dir / "train.log", "w") as log:
+        proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    if proc.returncode != 0 or not final.is_file():
+        sys.exit(f"[scene_adaptive] training failed ({proc.returncode}); see {run_dir / 'train.log'}")
+    print(f"[scene_adaptive]   done in {time.perf_counter() - t0:.0f} s", flush=True)
+    return json.loads(stats.read_text())
+
+
+def measure_scene(scene_dir: Path, warmup: int, repeats: int) -> dict:
+    """paper_full measured, auto pruned (measured before and after), one after the other in this process."""
+    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
+
+    full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
+    module = load_checkpoint_module(full_ckpt, device=_device())
+    full = measure_module(module, checkpoint_datamodule(module), warmup=warmup, repeats=repeats,
+                          file_bytes=full_ckpt.stat().st_size)  # fmt: skip
+    auto_ckpt = scene_dir / "auto" / "checkpoints" / "final.ckpt"
+    report = prune_checkpoint(auto_ckpt, auto_ckpt.with_name("final.pruned.ckpt"), warmup=warmup, repeats=repeats,
+                              device=_device())  # fmt: skip
+    return {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__,
+            "removed_gaussians": report.removed_gaussians}  # fmt: skip
+
+
+def _device() -> str:
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def scene_table(name: str, result: dict) -> str:
+    from framework.plugins import format_table
+
+    rows = []
+    base = result["measures"]["paper_full"]
+    for variant in ("paper_full", "auto", "auto+pruned"):
+        m = result["measures"][variant]
+        stats = result["train"]["auto" if variant == "auto+pruned" else variant]
+        peak = stats.get("cuda_peak_mib") or stats.get("peak_rss_mib")
+        psnr = m["psnr"]
+        rows.append((
+            variant, str(m["num_gaussians"]), str(m["sh_degree"]), f"{m['model_bytes'] / 2**20:.2f}",
+            f"{m['novel_pose_fps']:.1f} ({m['novel_pose_fps'] / base['novel_pose_fps']:.2f}x)",
+            f"{stats['fit_seconds']:.0f}", f"{peak:.0f}",
+            f"{psnr.get('novel_view', float('nan')):.2f}", f"{psnr.get('novel_pose', float('nan')):.2f}",
+            f"{base['model_bytes'] / m['model_bytes']:.2f}x",
+        ))  # fmt: skip
+    header = ("variant", "Gaussians", "SH", "model MiB", "novel-pose fps", "train s", "peak MiB", "novel-view dB",
+              "novel-pose dB", "smaller")  # fmt: skip
+    choices = "; ".join(f"{c['key']}={_short(c['value'])} ({c['measure']})" for c in result["choices"]
+                        if not c["by_hand"])  # fmt: skip
+    return f"### {name}\n\nauto chose: {choices}\n\n{format_table(rows, header)}\n"
+
+
+def _short(value) -> str:
+    if isinstance(value, list):
+        return f"[{len(value)} joints]"
+    return "keep" if value is None else str(value)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=Path("outputs/scene_adaptive"))
+    ap.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
+    ap.add_argument("--profile", default=None, help="hardware profile for every training (default: chosen by GPU)")
+    ap.add_argument("--smoke", action="store_true", help=f"50-step trainings: {' '.join(SMOKE)}")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra overrides for every training")
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=10)
+    args = ap.parse_args()
+    extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
+    results = {}
+    for scene in args.scenes:
+        scene_dir = args.out / scene
+        train_stats = {v: train(scene_dir / v, [*SCENES[scene], *o, *extra]) for v, o in VARIANTS.items()}
+        summary = yaml.safe_load((scene_dir / "auto" / "scene.yaml").read_text())
+        results[scene] = {"train": train_stats, "measures": measure_scene(scene_dir, args.warmup, args.repeats),
+                          "choices": summary["choices"], "profile": summary["profile"]}  # fmt: skip
+        results[scene]["removed_gaussians"] = results[scene]["measures"].pop("removed_gaussians")
+        tmp = args.out / "results.json.tmp"
+        tmp.write_text(json.dumps(results, indent=1))
+        os.replace(tmp, args.out / "results.json")
+    device = _device()
+    lines = [f"# scene-adaptive comparison{' (SMOKE RUN: 50 steps, numbers are not results)' if args.smoke else ''}",
+             "", f"device {device}; overrides for every training: `{' '.join(extra) or '(none)'}`", ""]  # fmt: skip
+    lines += [scene_table(scene, results[scene]) for scene in args.scenes]
+    (args.out / "scene_adaptive.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+    print(f"[scene_adaptive] written: {args.out / 'scene_adaptive.md'}, {args.out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()
