@@ -46,7 +46,7 @@ def build_component(kind: str, node: DictConfig | dict[str, Any] | None, group: 
         return cls(**kwargs)
     except SplatrigError:
         raise
-    except ValueError as exc:  # components reject bad values with a message that names the field
+    except (ValueError, FileNotFoundError) as exc:  # components reject bad values / missing files by name
         raise ConfigError(f"config group '{group}' ({kind} '{name}'): {exc}") from None
     except TypeError as exc:
         raise ConfigError(

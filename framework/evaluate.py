@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from framework.atomic import atomic_path, atomic_write_text
 from framework.build import build_component
 from framework.errors import SplatrigError, reported_as_message
 from framework.plugins import format_table, load_plugins
@@ -66,6 +67,8 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
             rgb = module.render_batch(batch).render.rgb.clamp(0, 1)
             row: dict[str, Any] = {"split": split, "frame": int(batch.frame[0]),
                                    "view": -1 if batch.view is None else int(batch.view[0])}  # fmt: skip
+            if not rows:
+                _drop_metrics_that_reject(metrics, rgb, batch.image)
             for name, metric in metrics.items():
                 v = float(metric(rgb, batch.image)[0])
                 values[name].append(v)
@@ -86,18 +89,28 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
             finite = [v for v in vals if math.isfinite(v)]
             if finite:
                 summary[f"{split}/{name}"] = float(sum(finite) / len(finite))
-    with open(out_dir / "per_frame.csv", "w", newline="") as f:
+    with atomic_path(out_dir / "per_frame.csv") as tmp, open(tmp, "w", newline="") as f:
         fields = ["split", "frame", "view", *metrics, *([f"bbox_{m}" for m in metrics] if has_box else [])]
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
     table = summary_table(summary, splits, list(metrics))
-    (out_dir / "summary.md").write_text(table + "\n")
+    atomic_write_text(out_dir / "summary.md", table + "\n")  # written last: its presence marks a finished evaluation
     print("\n" + table)
     if logger is not None and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_scalar"):
         for key, value in summary.items():
             logger.experiment.add_scalar(f"eval/{key}", value, step)
     return summary
+
+
+def _drop_metrics_that_reject(metrics: dict[str, Any], rgb: torch.Tensor, image: torch.Tensor) -> None:
+    """Leave out, with a note, the metrics that cannot score images like these (LPIPS needs >= 31 px on a side)."""
+    for name, metric in list(metrics.items()):
+        try:
+            metric(rgb, image)
+        except (ValueError, SplatrigError) as exc:
+            print(f"[splatrig] metric '{name}' skipped: {exc}", file=sys.stderr)
+            del metrics[name]
 
 
 def _body_box_metrics(dataset, batch, rgb, metrics: dict[str, Any]) -> dict[str, float]:
@@ -124,13 +137,25 @@ def summary_table(summary: dict[str, float], splits: list[str], metrics: list[st
 
 
 def load_module(ckpt: str | Path, map_location: str = "cpu"):
+    """The trained model of a checkpoint, rebuilt from the config stored in it (errors name the file and the fix)."""
+    from framework.lightning.checkpoint_io import CheckpointError, read_checkpoint
     from framework.lightning.module import SplatModule
 
-    path = Path(ckpt)
-    if not path.is_file():
-        raise SplatrigError(f"ckpt={ckpt}: no such checkpoint file (look in a run's checkpoints/ folder).")
+    checkpoint = read_checkpoint(ckpt, map_location)
     load_plugins()
-    return SplatModule.load_from_checkpoint(str(path), map_location=map_location, weights_only=False)
+    hparams = checkpoint["hyper_parameters"]
+    module = SplatModule(hparams["cfg"], hparams["data_info"])
+    module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage
+    try:
+        module.load_state_dict(checkpoint["state_dict"])
+    except RuntimeError as exc:
+        lines = str(exc).strip().splitlines()
+        detail = lines[min(1, len(lines) - 1)].strip()
+        raise CheckpointError(
+            f"ckpt={ckpt}: its tensors do not fit the model its own config builds ({detail}); it was written by an "
+            f"incompatible version of splatrig or edited. Train it again."
+        ) from None
+    return module
 
 
 def datamodule_for(module):
@@ -151,16 +176,25 @@ def main() -> int:
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="evaluate")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
-            module = load_module(cfg.ckpt)
-            dm = datamodule_for(module)
-            splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
-            metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
-            evaluate_module(module, dm, splits, metrics, out)
-            print(f"[splatrig] evaluation written to {out}")
+            evaluate_from_config(cfg)
 
     _main()
     return 0
+
+
+def evaluate_from_config(cfg) -> Path:
+    """What `python -m framework.evaluate` does with its composed config; returns the output folder."""
+    from framework.config_checks import check_evaluate_config
+
+    check_evaluate_config(cfg)
+    module = load_module(cfg.ckpt)
+    dm = datamodule_for(module)
+    splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
+    metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
+    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
+    evaluate_module(module, dm, splits, metrics, out)
+    print(f"[splatrig] evaluation written to {out}")
+    return out
 
 
 if __name__ == "__main__":

@@ -6,8 +6,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from framework.guards import AXIS_ANGLE_TAYLOR_SQ, NORM_EPS, ROTMAT_QUAT_DENOM_MIN, ROTMAT_QUAT_SQ_MIN
 
-def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
+
+def quat_normalize(q: Tensor, eps: float = NORM_EPS) -> Tensor:
     """Normalise [..., 4]; a zero quaternion maps to the identity rather than NaN."""
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
@@ -52,7 +54,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     q_abs = torch.sqrt(
         torch.stack(
             [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
-        ).clamp_min(1e-12)
+        ).clamp_min(ROTMAT_QUAT_SQ_MIN)
     )  # [..., 4] = 2 * |(w, x, y, z)|
     candidates = torch.stack(
         [
@@ -62,7 +64,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
             torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
         ],
         dim=-2,
-    ) / (2 * q_abs[..., None].clamp_min(0.1))  # [..., 4 (formula), 4]
+    ) / (2 * q_abs[..., None].clamp_min(ROTMAT_QUAT_DENOM_MIN))  # [..., 4 (formula), 4]
     best = q_abs.argmax(dim=-1)  # [...]
     q = candidates.gather(-2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     q = F.normalize(q, dim=-1)
@@ -72,7 +74,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
 def axis_angle_to_rotmat(aa: Tensor) -> Tensor:
     """[..., 3] axis-angle -> [..., 3, 3] (Rodrigues), with finite values and gradients at zero angle."""
     theta2 = (aa * aa).sum(-1, keepdim=True)  # [..., 1]
-    small = theta2 < 1e-8
+    small = theta2 < AXIS_ANGLE_TAYLOR_SQ
     theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
     theta = torch.sqrt(theta2_safe)
     # sin(t)/t and (1-cos(t))/t^2 with Taylor expansions near zero

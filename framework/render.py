@@ -41,28 +41,39 @@ def main() -> int:
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="render")
     def _main(cfg: DictConfig) -> None:
-        import imageio.v3 as iio
-
-        from framework.evaluate import datamodule_for, load_module
-
         with reported_as_message():
-            module = load_module(cfg.ckpt)
-            module.eval()
-            dm = datamodule_for(module)
-            images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
-                                     float(cfg.orbit_turns), cfg.resolution, cfg.max_frames,
-                                     float(cfg.fps))  # fmt: skip
-            name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / name
-            (out / "frames").mkdir(parents=True, exist_ok=True)
-            for i, img in enumerate(images):
-                iio.imwrite(out / "frames" / f"{i:05d}.png", img)
-            video = out / f"{name}.mp4"
-            iio.imwrite(video, np.stack(images), fps=int(cfg.fps), codec="libx264", macro_block_size=1)
-            print(f"[splatrig] wrote {len(images)} frames to {out / 'frames'} and {video}")
+            render_from_config(cfg)
 
     _main()
     return 0
+
+
+def render_from_config(cfg) -> Path:
+    """What `python -m framework.render` does with its composed config; returns the output folder. Every file is
+    written atomically (a rerun after an interruption never finds a half-written frame or video)."""
+    import imageio.v3 as iio
+
+    from framework.atomic import atomic_path
+    from framework.config_checks import check_render_config
+    from framework.evaluate import datamodule_for, load_module
+
+    check_render_config(cfg)
+    module = load_module(cfg.ckpt)
+    module.eval()
+    dm = datamodule_for(module)
+    images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
+                             float(cfg.orbit_turns), cfg.resolution, cfg.max_frames, float(cfg.fps))  # fmt: skip
+    name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
+    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / name
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    for i, img in enumerate(images):
+        with atomic_path(out / "frames" / f"{i:05d}.png") as tmp:
+            iio.imwrite(tmp, img)
+    video = out / f"{name}.mp4"
+    with atomic_path(video) as tmp:
+        iio.imwrite(tmp, np.stack(images), fps=int(cfg.fps), codec="libx264", macro_block_size=1)
+    print(f"[splatrig] wrote {len(images)} frames to {out / 'frames'} and {video}")
+    return out
 
 
 if __name__ == "__main__":

@@ -110,16 +110,19 @@ def run(cfg: DictConfig) -> float | None:
     from lightning.pytorch.loggers import TensorBoardLogger
 
     from framework.build import build_component
+    from framework.config_checks import check_train_config
     from framework.evaluate import evaluate_module
     from framework.evaluation.run_cost import run_cost
     from framework.evaluation.run_record import metrics_from_summary, write_run_record
     from framework.lightning.callbacks import ImageGridLogger, StageSwitch, StepProgressBar
+    from framework.lightning.checkpoint_io import AtomicCheckpointIO
     from framework.lightning.data import FrameDataModule
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
     from framework.runtime import reuse_freed_memory
     from framework.scene.setup import command_line_overrides, prepare_scene
 
+    check_train_config(cfg)
     reuse_freed_memory()
     started = time.perf_counter()
     load_plugins()
@@ -197,6 +200,7 @@ def run(cfg: DictConfig) -> float | None:
         deterministic=False,
         fast_dev_run=bool(cfg.trainer.get("fast_dev_run", False)),
         limit_val_batches=cfg.trainer.get("limit_val_batches", 1.0),
+        plugins=[AtomicCheckpointIO()],  # a kill during a save leaves the previous checkpoint intact
     )
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path is not None and not Path(ckpt_path).is_file():

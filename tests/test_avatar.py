@@ -146,15 +146,25 @@ def test_inactive_sh_bands_are_skipped_without_changing_render_or_gradients(body
 
 
 def test_posed_gaussians_are_reused_for_novel_views_of_one_pose(body):
+    """A second camera on the same pose reuses the posed Gaussians (the cache is keyed on the pose, not the camera)
+    and still renders what that camera sees: the direct render of the posed Gaussians from it."""
     avatar = _avatar(body).eval()
     calls = []
     avatar.deformer.register_forward_hook(lambda *a: calls.append(1))
+    M = torch.eye(4)
+    M[:3, :3] = axis_angle_to_rotmat(torch.tensor([0.0, 0.0, 0.8]))  # orbit the camera 46 degrees about the body
+    novel = Cameras(_camera().K, _camera().world_to_cam @ M, SIZE, SIZE)
     with torch.no_grad():
         a = avatar(_batch(body), sh_degree=1)
-        b = avatar(_batch(body, cameras=_camera(torch.eye(4) @ _camera().world_to_cam[0])), sh_degree=1)
+        b = avatar(_batch(body, cameras=novel), sh_degree=1)
         avatar(_batch(body, pose=0.1 * torch.ones(1, body.num_joints, 3)), sh_degree=1)
+        p = b.posed
+        direct = avatar.rasterizer.render(p.means, p.quats, p.scales, p.opacities, p.sh, novel, sh_degree=1,
+                                          background=avatar.background)  # fmt: skip
     assert len(calls) == 2
     assert a.posed is b.posed
+    assert float((a.render.rgb - b.render.rgb).abs().max()) > 0.1, "the novel camera must see a different image"
+    torch.testing.assert_close(b.render.rgb, direct.rgb)
 
 
 def test_stage_switch_enables_exactly_the_stage_two_parameters(body):

@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-from framework.geometry import axis_angle_to_rotmat
 from framework.rig.kinematics import (
     blend_transforms,
     forward_kinematics,
@@ -104,11 +103,14 @@ def test_batch_consistency():
         assert torch.equal(T_one[0], T_all[b]) or (T_one[0] - T_all[b]).abs().max() < 1e-14
 
 
-def test_rotmat_entry_point_equals_axis_angle():
+def test_rotmat_entry_point_matches_naive_loop():
+    """Local rotation matrices from the matrix exponential (not our Rodrigues) give the naive loop's transforms."""
     pose, joints = _random(seed=4)
-    a = forward_kinematics(pose, joints, PARENTS)[1]
-    b = forward_kinematics_rotmat(axis_angle_to_rotmat(pose), joints, PARENTS)[1]
-    assert torch.equal(a, b)
+    rotations = torch.stack([torch.stack([_rodrigues64(aa) for aa in frame]) for frame in pose])  # [B, J, 3, 3]
+    G, T = forward_kinematics_rotmat(rotations, joints, PARENTS)
+    G_ref, T_ref = naive_fk(pose, joints, PARENTS)
+    assert (G - G_ref).abs().max() < 1e-12
+    assert (T - T_ref).abs().max() < 1e-12
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-7, math.pi, 2 * math.pi - 1e-4])

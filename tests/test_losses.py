@@ -99,9 +99,9 @@ def test_weight_std():
     assert term(render, batch, {"weight_std": torch.zeros(0)}).item() == 0.0
 
 
-def _ssim_map_mirror(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """float64 SSIM map with the 11-tap sigma-1.5 Gaussian and mirrored borders (d c b | a b c d)."""
-    r = np.arange(11) - 5
+def _ssim_map_mirror(a: np.ndarray, b: np.ndarray, window: int = 11) -> np.ndarray:
+    """float64 SSIM map with the `window`-tap sigma-1.5 Gaussian and mirrored borders (d c b | a b c d)."""
+    r = np.arange(window) - window // 2
     g = np.exp(-(r**2) / 4.5)
     g /= g.sum()
 

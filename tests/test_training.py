@@ -32,10 +32,17 @@ TINY = [
 ]
 
 
+HELPERS = Path(__file__).resolve().parent / "helpers"
+
+
 def _train(
-    tmp_path: Path, *overrides: str, wait: bool = True, cache: Path | None = None
+    tmp_path: Path, *overrides: str, wait: bool = True, cache: Path | None = None, faults: dict[str, str] | None = None
 ) -> subprocess.Popen | subprocess.CompletedProcess:
+    """Run `python -m framework.train` on the tiny static fit; `faults` (env values) loads tests/helpers/faults.py."""
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache or tmp_path / "cache"), PYTHONUNBUFFERED="1")
+    if faults is not None:
+        path = os.pathsep.join([str(HELPERS), env.get("PYTHONPATH", "")])
+        env.update(faults, SPLATRIG_PLUGINS="faults", PYTHONPATH=path)
     cmd = [sys.executable, "-m", "framework.train", *TINY, f"paths.root={tmp_path / 'out'}", *overrides]
     if wait:
         return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
@@ -50,10 +57,18 @@ def _load(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
-def test_static_fit_trains_and_reports(tmp_path: Path):
-    proc = _train(tmp_path, "trainer.max_steps=40")
+@pytest.fixture(scope="module")
+def whole_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess]:
+    """One uninterrupted tiny static fit of 60 steps (the reference of the kill/resume test too)."""
+    root = tmp_path_factory.mktemp("whole")
+    proc = _train(root, "trainer.max_steps=60", cache=root / "cache")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run = _run_dirs(tmp_path)[-1]
+    return root, proc
+
+
+def test_static_fit_trains_and_reports(whole_run):
+    root, proc = whole_run
+    run = _run_dirs(root)[-1]
     assert (run / "config_resolved.yaml").is_file()
     assert (run / "checkpoints" / "last.ckpt").is_file()
     assert not (run / "checkpoints" / "best.ckpt").exists(), "no checkpoint may be selected on a test split"
@@ -61,60 +76,61 @@ def test_static_fit_trains_and_reports(tmp_path: Path):
     assert "novel_view" in summary and "psnr" in summary
     assert str(run) in proc.stdout  # tells the user where the results are
     ckpt = _load(run / "checkpoints" / "last.ckpt")
-    assert ckpt["global_step"] == 40
+    assert ckpt["global_step"] == 60
     events = list((run / "tb").rglob("events.out.tfevents.*"))
     assert events, "no TensorBoard event file written"
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    # Scalars are logged only on the steps Lightning writes (log_every = 25 by default): step 24 of 0..39.
+    # Scalars are logged only on the steps Lightning writes (log_every = 25 by default): steps 24 and 49 of 0..59.
     scalars = EventAccumulator(str(events[0].parent)).Reload()
     for tag in ("loss/total", "loss/l1", "train/psnr", "train/ms_per_iteration", "lr/means", "train/stage"):
-        assert [e.step for e in scalars.Scalars(tag)] == [24], tag
+        assert [e.step for e in scalars.Scalars(tag)] == [24, 49], tag
 
 
-def test_interrupted_run_resumes_with_step_count_and_optimizer_state(tmp_path: Path):
-    proc = _train(tmp_path, "trainer.max_steps=200", wait=False)
-    ckpt_path = None
-    deadline = time.time() + 300
+def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run(tmp_path: Path, whole_run):
+    """A run killed while it writes the step-30 checkpoint keeps the step-20 one loadable; resumed, it continues the
+    step count, the optimizer's and the densifier's state and the random streams, and ends where an uninterrupted
+    run ends (same parameters within float noise, same metrics)."""
+    whole = whole_run[0]
+    cache, killed = whole / "cache", tmp_path / "killed"
+    killed.mkdir()
+    marker = tmp_path / "stalled"
+    faults = {"SPLATRIG_TEST_STALL_CHECKPOINT_AT": "30", "SPLATRIG_TEST_STALL_MARKER": str(marker)}
+    proc = _train(killed, "trainer.max_steps=60", wait=False, cache=cache, faults=faults)
     try:
-        while time.time() < deadline:
-            runs = _run_dirs(tmp_path)
-            candidate = runs[-1] / "checkpoints" / "last.ckpt" if runs else None
-            if candidate is not None and candidate.is_file():
-                time.sleep(0.5)  # let the write finish
-                try:
-                    step = _load(candidate)["global_step"]
-                except Exception:
-                    continue
-                if step >= 30:
-                    ckpt_path = candidate
-                    break
+        deadline = time.time() + 300
+        while not marker.exists():
             if proc.poll() is not None:
-                pytest.fail(f"training ended before it could be interrupted:\n{proc.stdout.read()[-3000:]}")
+                pytest.fail(f"training ended before the stalled write:\n{proc.stdout.read()[-3000:]}")
+            assert time.time() < deadline, "the step-30 checkpoint write never started"
             time.sleep(0.2)
-        assert ckpt_path is not None, "no checkpoint at step >= 30 appeared"
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-    saved = _load(ckpt_path)
-    step0 = saved["global_step"]
-    assert step0 < 200
-    n0 = saved["state_dict"]["avatar.gaussians.params.means"].shape[0]
-    assert n0 != 400, "densification did not change N before the interruption; the resize path is untested"
+    ckpt_dir = _run_dirs(killed)[-1] / "checkpoints"
+    assert list(ckpt_dir.glob(".last.ckpt.tmp-*")), "the kill did not happen inside a checkpoint write"
+    saved = _load(ckpt_dir / "last.ckpt")  # the previous checkpoint, complete
+    assert saved["global_step"] == 20
+    assert saved["state_dict"]["avatar.gaussians.params.means"].shape[0] != 400, "no densification before the kill"
 
-    final_steps = step0 + 30
-    proc = _train(tmp_path, f"trainer.max_steps={final_steps}", f"ckpt_path={ckpt_path}")
+    proc = _train(killed, "trainer.max_steps=60", f"ckpt_path={ckpt_dir / 'last.ckpt'}", cache=cache)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    resumed = _run_dirs(tmp_path)[-1] / "checkpoints" / "last.ckpt"
-    final = _load(resumed)
-    assert final["global_step"] == final_steps
-    opt = final["optimizer_states"][0]
-    names = [g["name"] for g in opt["param_groups"]]
-    means_state = opt["state"][opt["param_groups"][names.index("means")]["params"][0]]
-    # Adam's per-parameter step counter continued from the interrupted run rather than restarting at 0.
-    assert int(means_state["step"]) > final_steps - step0
-    n = final["state_dict"]["avatar.gaussians.params.means"].shape[0]
-    assert means_state["exp_avg"].shape[0] == n
+    resumed_dir = _run_dirs(killed)[-1]
+    final = _load(resumed_dir / "checkpoints" / "last.ckpt")
+    reference = _load(_run_dirs(whole)[-1] / "checkpoints" / "last.ckpt")
+    assert final["global_step"] == reference["global_step"] == 60
+    for key, value in reference["state_dict"].items():
+        assert final["state_dict"][key].shape == value.shape, key
+        torch.testing.assert_close(final["state_dict"][key], value, atol=1e-5, rtol=1e-4, msg=key)
+    opt, ref_opt = final["optimizer_states"][0], reference["optimizer_states"][0]
+    for state, ref_state in zip(opt["state"].values(), ref_opt["state"].values(), strict=True):
+        assert int(state["step"]) == int(ref_state["step"])  # Adam's counters continued, not restarted
+        torch.testing.assert_close(state["exp_avg_sq"], ref_state["exp_avg_sq"], atol=1e-8, rtol=1e-3)
+    for key, value in reference["densifier_state"].items():
+        if isinstance(value, torch.Tensor):
+            torch.testing.assert_close(final["densifier_state"][key], value, atol=1e-6, rtol=1e-4, msg=key)
+    summary = (_run_dirs(whole)[-1] / "eval" / "summary.md").read_text()
+    assert (resumed_dir / "eval" / "summary.md").read_text() == summary
 
 
 def test_unknown_component_gives_one_clear_message(tmp_path: Path):

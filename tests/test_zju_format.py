@@ -278,3 +278,18 @@ def test_boundary_band_width_and_extremes() -> None:
     assert boundary_mask(np.zeros((0, 0)), 5).shape == (0, 0)
     single = np.zeros((1, 1))
     assert boundary_mask(single, 3).tolist() == [[1.0]]
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_truncated_images_are_refused(tmp_path: Path, ext: str):
+    """OpenCV decodes a JPEG cut in half without an error (grey below the cut): the end marker check refuses it."""
+    from framework.data.zju.layout import ZjuFormatError, check_complete, read_image
+
+    path = tmp_path / f"img{ext}"
+    cv2.imwrite(str(path), (np.random.default_rng(0).random((40, 30, 3)) * 255).astype(np.uint8))
+    check_complete(path)  # complete: no error
+    assert read_image(path).shape == (40, 30, 3)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ZjuFormatError, match="is truncated"):
+        read_image(path)

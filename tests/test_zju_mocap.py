@@ -317,10 +317,8 @@ def test_bad_mask_size(tmp_path: Path) -> None:
     write_toy_sequence(tmp_path, C=2, F=2, size=32)
     bad = tmp_path / "mask" / "Camera_B2" / "000001.png"
     cv2.imwrite(str(bad), np.ones((16, 20), np.uint8))
-    ds = ZjuMocapDataset(str(tmp_path), protocol=None)
-    ds[0]
     with pytest.raises(ZjuFormatError, match=r"000001\.png \(frame 1, view 1\): mask is 20x16 .* is 32x32"):
-        ds[3]
+        ZjuMocapDataset(str(tmp_path), protocol=None)  # found when the dataset is opened, not when frame 1 is read
 
 
 def test_bad_nan_pose(tmp_path: Path) -> None:
@@ -344,9 +342,11 @@ def test_bad_body_joint_count(tmp_path: Path, body: ProceduralBody) -> None:
 def test_bad_missing_image(tmp_path: Path) -> None:
     write_toy_sequence(tmp_path, C=2, F=2, size=16)
     (tmp_path / "Camera_B1" / "000001.png").unlink()
-    ds = ZjuMocapDataset(str(tmp_path), protocol=None)
     with pytest.raises(FileNotFoundError, match=r"Camera_B1/000001\.png of frame 1, view 0 is missing"):
-        ds[2]
+        ZjuMocapDataset(str(tmp_path), protocol=None)  # found when the dataset is opened
+    ds = ZjuMocapDataset(str(tmp_path), protocol=None, train_frames=[0, 1])  # (start, end): frame 0 only
+    with pytest.raises(FileNotFoundError, match=r"Camera_B1/000001\.png of frame 1, view 0 is missing"):
+        ds.load_uint8(1, 0)
 
 
 def test_bad_missing_params(tmp_path: Path) -> None:

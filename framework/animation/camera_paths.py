@@ -34,7 +34,8 @@ def sequence_cameras(module, dm, mode: str, num: int, camera_index: int = 0, tur
         return [orbit.index(i) for i in range(num)]
     if mode == "fixed":
         if not 0 <= camera_index < train_cams.num:
-            raise SplatrigError(f"camera_index={camera_index}: the dataset has cameras 0..{train_cams.num - 1}.")
+            last = train_cams.num - 1
+            raise SplatrigError(f"camera_index={camera_index}: the dataset has cameras 0..{last}; pick one of them.")
         K = train_cams.K[camera_index : camera_index + 1].clone()
         K[:, 0] *= width / train_cams.width
         K[:, 1] *= height / train_cams.height

@@ -25,7 +25,6 @@ What a sample is: one (frame, view) pair of the split, as a FrameBatch with B = 
 from __future__ import annotations
 
 import logging
-import os
 import re
 from collections import OrderedDict
 from pathlib import Path
@@ -34,8 +33,9 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from framework.atomic import atomic_path
 from framework.data.boundary import boundary_mask
-from framework.data.zju.layout import ZjuFormatError
+from framework.data.zju.layout import ZjuFormatError, ZjuMissingFileError, check_complete
 from framework.data.zju.reader import ZjuCameras
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces import MultiViewDataset
@@ -86,6 +86,48 @@ def frame_range(spec: Any, num_frames: int, what: str) -> list[int]:
             f" (the sequence has {num_frames} frames); give (start, end, step) with end exclusive"
         )
     return frames
+
+
+def check_files(seq: MultiViewSequence, frames: list[int], views: list[int], mask_dir: str = "auto") -> tuple[int, int]:
+    """Open every image and mask of (frames x views) far enough to know it is there, complete, and of one size with
+    its mask and the other images (headers only: ~1 ms a pair); returns (width, height). Errors name the file, the
+    frame and the view."""
+    from PIL import Image, UnidentifiedImageError
+
+    def size(path: Path, what: str, frame: int, view: int) -> tuple[int, int]:
+        try:
+            with Image.open(path) as im:
+                wh = im.size
+        except (UnidentifiedImageError, OSError) as exc:
+            raise ZjuFormatError(f"{what} {path} (frame {frame}, view {view}) cannot be read as an image "
+                                 f"({type(exc).__name__}); export it again") from None  # fmt: skip
+        check_complete(path, what)
+        return wh
+
+    expected: tuple[int, int] | None = None
+    first = Path()
+    for f in frames:
+        for v in views:
+            image = seq.image_path(f, v)
+            if not image.exists():
+                seq.image(f, v)  # raises the reader's missing-image message
+            wh = size(image, "image file", f, v)
+            if expected is None:
+                expected, first = wh, image
+            elif wh != expected:
+                raise ZjuFormatError(
+                    f"{image} (frame {f}, view {v}): image is {wh[0]}x{wh[1]} but {first.name} of frame {frames[0]}, "
+                    f"view {views[0]} is {expected[0]}x{expected[1]}; every image of a sequence must have the same size"
+                )
+            mask = seq.mask_path(f, v, mask_dir)
+            mwh = size(mask, "mask file", f, v)
+            if mwh != wh:
+                raise ZjuFormatError(
+                    f"{mask} (frame {f}, view {v}): mask is {mwh[0]}x{mwh[1]} (WxH) but its image {image.name} is "
+                    f"{wh[0]}x{wh[1]}; masks must match their images pixel for pixel"
+                )
+    assert expected is not None
+    return expected
 
 
 class LRU:
@@ -188,9 +230,8 @@ class SequenceDataset(MultiViewDataset):
         # ---- poses (whole sequence: pose-refinement tables are num_frames_total long)
         self._load_params(body)
 
-        # ---- cameras (all views), image size from the first image of the split
-        first = seq.image(self.frame_ids[0], self.views[0])
-        self.src_height, self.src_width = first.shape[:2]
+        # ---- every image and mask of the split: present, complete, one size (the reader checks the cameras)
+        self.src_width, self.src_height = check_files(seq, self.frame_ids, self.views, mask_dir)
         self.width = max(1, int(self.src_width / self.downscale))
         self.height = max(1, int(self.src_height / self.downscale))
         K = seq.cameras.K_splatrig()  # [C, 3, 3]
@@ -264,7 +305,7 @@ class SequenceDataset(MultiViewDataset):
                 body_key = str(p["body"])
             poses.append(pose.reshape(J, 3)), rh.append(r), th.append(t), shapes.append(s)
         if J is None:
-            raise FileNotFoundError(f"{self.label}: no params file found under {self.root}: {last_exc}")
+            raise ZjuMissingFileError(f"{self.label}: no params file found under {self.root}: {last_exc}")
         if missing:
             log.warning(
                 "%s: %d frame(s) outside the split have no params (e.g. frame %d); using rest pose",
@@ -361,6 +402,12 @@ class SequenceDataset(MultiViewDataset):
                 f"{self.seq.image_path(frame, view).name} is {img.shape[1]}x{img.shape[0]}; masks must match their "
                 f"images pixel for pixel"
             )
+        if not m.any():
+            raise ZjuFormatError(
+                f"{mpath} (frame {frame}, view {view}): the mask is empty (no foreground pixel); every (frame, view) "
+                f"of a split must show the subject. Fix the mask, or leave the frame out (train_frames) or the view "
+                f"(train_views / test_views)"
+            )
         img = self._resize(self._undistort(view, img))
         m = self._resize(self._undistort(view, m * np.uint8(255)))
         out = (np.ascontiguousarray(img), np.ascontiguousarray(m))
@@ -383,9 +430,8 @@ class SequenceDataset(MultiViewDataset):
             packed = np.packbits(b.astype(bool).ravel())
             self._boundary_mem[key] = packed
             if disk is not None:
-                tmp = disk.with_name(disk.stem + f".{os.getpid()}.tmp.npy")
-                np.save(tmp, packed)
-                os.replace(tmp, disk)
+                with atomic_path(disk) as tmp:
+                    np.save(tmp, packed)
         n = self.width * self.height
         return np.unpackbits(packed, count=n).reshape(self.height, self.width).astype(np.float32)
 

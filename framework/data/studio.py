@@ -2,7 +2,8 @@
 
     python -m framework.data.studio --out DIR --resolution 512 --views 21 --frames 100 --seed 0 --body anny
 
-What it makes (deterministic for the settings; cached by a hash of them, so a second run reuses the sequence):
+What it makes (deterministic for the settings; cached by a hash of them, so a second run reuses the sequence, and an
+interrupted one resumes: the frames it finished are kept):
 - Cameras: a ring of `views` calibrated pinhole cameras at `radius` m around the subject, heights alternating around
   1.3 m, all looking at the body's centre (OpenCV K/R/T, D = 0), like ZJU-MoCap's capture dome.
 - Motion (`framework.data.motions`): the anny walk cycle, arm raises, squats and kicks for training, and a held-out
@@ -44,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from framework.atomic import atomic_write_text
 from framework.data import raycast
 from framework.data.garment import skirt_albedo
 
@@ -200,9 +202,9 @@ def _render_frame(f: int) -> int:
             rng = np.random.default_rng([s["seed"], f, v, 31])
             parsed.append(parser_like_mask(r.mask, s["mask_error_px"], rng))
     writer = ZjuWriter(s["root"], s["camera_names"], image_ext=s["image_ext"], jpeg_quality=s["jpeg_quality"])
-    writer.write_frame(f, np.stack(imgs), np.stack(masks), params=s["params"][f], vertices=s["fitted"][f])
-    if parsed:
+    if parsed:  # before write_frame, which marks the frame done
         writer.write_masks(f, np.stack(parsed), "mask_cihp")
+    writer.write_frame(f, np.stack(imgs), np.stack(masks), params=s["params"][f], vertices=s["fitted"][f])
     return f
 
 
@@ -231,6 +233,12 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
             )
     if root.exists() and force:
         shutil.rmtree(root)
+    started = root / ".studio_settings.json"  # written before the first frame: an interrupted run can be resumed
+    if started.is_file() and json.loads(started.read_text()).get("key") != settings.key():
+        raise FileExistsError(
+            f"studio: {root} holds an unfinished sequence with other settings ({started.read_text().strip()}); pick "
+            f"another --out or pass --force to start it over."
+        )
     t0 = time.perf_counter()
     body = build_body(settings.body, settings.skeleton)
     rig = Rig.from_body(body)
@@ -262,6 +270,7 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
         for f in range(F)
     ]  # fmt: skip
     root.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(started, json.dumps({"key": settings.key(), "settings": asdict(settings)}))
     writer = ZjuWriter(root, names, image_ext=settings.image_ext, jpeg_quality=settings.jpeg_quality)
     K = np.stack([c.K for c in cams])
     R = np.stack([c.world_to_cam[:3, :3] for c in cams])
@@ -272,16 +281,17 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
              "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality, "fitted": fitted,
              "skirt": skirt, "skirt_posed": skirt_posed, "mask_error_px": settings.mask_error_px,
              "seed": settings.seed, "shading": shading}  # fmt: skip
-    bar = tqdm(total=F, desc=f"studio {settings.resolution}px x {settings.views} views", unit="frame",
-               disable=not progress)  # fmt: skip
-    if workers > 1 and F > 1:
+    todo = [f for f in range(F) if not writer.frame_done(f)]  # frames an interrupted run finished are kept
+    bar = tqdm(total=F, initial=F - len(todo), desc=f"studio {settings.resolution}px x {settings.views} views",
+               unit="frame", disable=not progress)  # fmt: skip
+    if workers > 1 and len(todo) > 1:
         ctx = mp.get_context("fork")
-        with ctx.Pool(min(workers, F), initializer=_init_worker, initargs=(state,)) as pool:
-            for _ in pool.imap_unordered(_render_frame, range(F)):
+        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(state,)) as pool:
+            for _ in pool.imap_unordered(_render_frame, todo):
                 bar.update(1)
     else:
         _init_worker(state)
-        for f in range(F):
+        for f in todo:
             _render_frame(f)
             bar.update(1)
     bar.close()
@@ -310,8 +320,9 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
         },
         "render_seconds": round(time.perf_counter() - t0, 2),
     }
-    meta_path.write_text(json.dumps(meta, indent=1))
+    atomic_write_text(meta_path, json.dumps(meta, indent=1))
     writer.finish(F)  # annots.npy last: its presence marks a complete sequence
+    started.unlink(missing_ok=True)
     return root
 
 

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, RandomSampler
+from torch.utils.data import DataLoader, Sampler
 
 from framework.interfaces import MultiViewDataset
 from framework.types import Cameras, FrameBatch
@@ -32,6 +32,38 @@ def collate_frames(items: Sequence[FrameBatch]) -> FrameBatch:
         image=cat("image"), mask=cat("mask"), boundary=cat("boundary"), cameras=cams, frame=cat("frame"),
         pose=cat("pose"), root=cat("root"), betas=cat("betas"), view=cat("view"),
     )  # fmt: skip
+
+
+class StepSampler(Sampler[int]):
+    """Training order as a function of the step: item k of the run is drawn (with replacement) from a block of
+    indices seeded by (seed, k // block), whatever epoch or process asks for it.
+
+    A resumed run asks `start()` (the trainer's step count) where to continue, so it sees the frames the
+    uninterrupted run would have seen, and no draw touches the global RNG (which the checkpoint restores for the
+    model's own randomness)."""
+
+    def __init__(self, n: int, seed: int, start: Callable[[], int] = lambda: 0, num_samples: int = 1000,
+                 block: int = 1024) -> None:  # fmt: skip
+        self.n, self.seed, self.start, self.num_samples, self.block = n, seed, start, num_samples, block
+
+    def indices(self, first: int, count: int) -> list[int]:
+        """The items of positions first .. first + count - 1."""
+        out: list[int] = []
+        k = first
+        while len(out) < count:
+            b = k // self.block
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + b)
+            drawn = torch.randint(self.n, (self.block,), generator=g).tolist()
+            take = min(count - len(out), (b + 1) * self.block - k)
+            out += drawn[k - b * self.block : k - b * self.block + take]
+            k += take
+        return out
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.indices(int(self.start()), self.num_samples) if self.n else [])
+
+    def __len__(self) -> int:
+        return self.num_samples if self.n else 0
 
 
 class FrameDataModule(L.LightningDataModule):
@@ -71,13 +103,17 @@ class FrameDataModule(L.LightningDataModule):
             num_workers=self.num_workers,
             collate_fn=collate_frames,
             persistent_workers=self.num_workers > 0,
+            generator=torch.Generator().manual_seed(self.seed),  # worker seeds drawn here, not from the global RNG
         )
 
+    def _trained_steps(self) -> int:
+        trainer = getattr(self, "trainer", None)
+        return int(trainer.global_step) if trainer is not None else 0
+
     def train_dataloader(self) -> DataLoader:
-        generator = torch.Generator().manual_seed(self.seed)
-        # A long epoch: validation and checkpoints run on step counts, and resuming continues the step count.
-        sampler = RandomSampler(self.train_set, replacement=True, num_samples=max(len(self.train_set), 1000),
-                                generator=generator)  # fmt: skip
+        # A long epoch: validation and checkpoints run on step counts, and a resumed run continues the step count and
+        # the order of frames (StepSampler).
+        sampler = StepSampler(len(self.train_set), self.seed, self._trained_steps, max(len(self.train_set), 1000))
         return self._loader(self.train_set, sampler=sampler)
 
     def val_dataloader(self) -> DataLoader:

@@ -8,7 +8,9 @@ parameters and their Adam state between steps.
 from __future__ import annotations
 
 import math
+import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -16,13 +18,21 @@ import torch
 from torch import Tensor, nn
 
 from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
+from framework.guards import PSNR_MSE_FLOOR
+from framework.lightning.divergence import (
+    DivergencePolicy,
+    TrainingDiverged,
+    diagnose,
+    finite_probe,
+    grads_and_params,
+)
 from framework.model.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.model.losses import CompositeLoss
 from framework.types import FrameBatch, Gaussians
 
 
 def psnr(pred: Tensor, target: Tensor) -> Tensor:
-    mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(PSNR_MSE_FLOOR)
     return -10 * torch.log10(mse)
 
 
@@ -76,6 +86,12 @@ class SplatModule(L.LightningModule):
         self._steps_since_log = 0
         self._last_train_psnr: Tensor | None = None
         self._loaded_steps = 0
+        try:
+            self.divergence = DivergencePolicy.from_config(cfg.get("divergence"))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self.lr_scale = 1.0  # lowered by every divergence rollback; saved in checkpoints
+        self.rollbacks = 0
 
     # ----------------------------------------------------------------------------------------------- construction
     def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
@@ -120,14 +136,17 @@ class SplatModule(L.LightningModule):
         return min(int(g["sh_degree"]), step // max(every, 1))
 
     def _set_learning_rates(self, optimizer: torch.optim.Optimizer, step: int) -> None:
-        """3DGS: the position learning rate decays exponentially to `means_final_ratio` of its start."""
+        """3DGS: the position learning rate decays exponentially to `means_final_ratio` of its start; every rate is
+        scaled by `lr_scale` (1 unless a divergence rollback lowered it)."""
         lr = self.cfg["optim"]["lr"]
         total = max(int(self.cfg["trainer"]["max_steps"]), 1)
         ratio = float(self.cfg["optim"].get("means_final_ratio", 0.01))
         t = min(step / total, 1.0)
         for group in optimizer.param_groups:
             if group["name"] == "means":
-                group["lr"] = float(lr["means"]) * self.scene_scale * math.exp(t * math.log(ratio))
+                group["lr"] = float(lr["means"]) * self.scene_scale * math.exp(t * math.log(ratio)) * self.lr_scale
+            elif group["name"] in lr:
+                group["lr"] = float(lr[group["name"]]) * self.lr_scale
 
     # ---------------------------------------------------------------------------------------------------- steps
     def trained_steps(self) -> int:
@@ -159,12 +178,20 @@ class SplatModule(L.LightningModule):
             self.densifier.step_pre_backward(params, self._densifier_optimizers(optimizer), self.densifier_state,
                                              step, info)  # fmt: skip
         self.manual_backward(total)
+        grads, values = grads_and_params(optimizer)
+        if not bool(torch.isfinite(finite_probe([total, *grads, *values]))):  # the step's one host sync
+            self._diverged(diagnose(step, total, terms, optimizer), optimizer)
+            opt.zero_grad(set_to_none=True)
+            return total.detach()
         opt.step()
         opt.zero_grad(set_to_none=True)
         if self.densifier is not None:
             with torch.no_grad():
                 self.densifier.step_post_backward(params, self._densifier_optimizers(optimizer),
                                                   self.densifier_state, step, info)  # fmt: skip
+        if self._checkpoint_due(step + 1) and not bool(torch.isfinite(finite_probe(grads_and_params(optimizer)[1]))):
+            message = diagnose(step, total.new_zeros(()), {}, optimizer).replace("at step", "after the update of step")
+            self._diverged(message, optimizer)
         self._steps_since_log += 1
         with torch.no_grad():
             self._last_train_psnr = psnr(out.render.rgb.detach(), batch.image).mean()
@@ -204,6 +231,48 @@ class SplatModule(L.LightningModule):
         if restart is not None:
             restart(self.densifier_state, step)
 
+    # ----------------------------------------------------------------------------------------------- divergence
+    def _checkpoint_due(self, step: int) -> bool:
+        """Whether a checkpoint is saved after the update that brings the count to `step` (train.py's periodic
+        last.ckpt and the end of the run; no checkpoint is saved on validation)."""
+        every = int(self.cfg["callbacks"]["checkpoint_every"])
+        return (every > 0 and step % every == 0) or step >= int(self.cfg["trainer"]["max_steps"])
+
+    def _last_good_checkpoint(self) -> Path | None:
+        trainer = self._trainer
+        for callback in getattr(trainer, "checkpoint_callbacks", []) if trainer is not None else []:
+            path = Path(str(callback.dirpath)) / "last.ckpt"
+            if callback.dirpath and path.is_file():
+                return path
+        return None
+
+    def _diverged(self, message: str, optimizer: torch.optim.Optimizer) -> None:
+        """Stop with `message`, or roll back to the last good checkpoint with lower learning rates."""
+        last = self._last_good_checkpoint()
+        where = f"The last good checkpoint is {last}" if last else "No checkpoint was written before it"
+        if self.divergence.action != "rollback" or last is None or self.rollbacks >= self.divergence.max_rollbacks:
+            why = ""
+            if self.divergence.action == "rollback":
+                why = f" (no rollback: {'nothing to roll back to' if last is None else 'max_rollbacks reached'})"
+            raise TrainingDiverged(
+                f"{message}{why}. {where}; resume from it with lower learning rates (optim.lr.*), or set "
+                f"divergence.action=rollback to recover automatically."
+            )
+        ckpt = torch.load(last, map_location=self.device, weights_only=False)
+        rollbacks, lr_scale = self.rollbacks + 1, self.lr_scale * self.divergence.lr_factor
+        self.on_load_checkpoint(ckpt)  # resizes the Gaussians, restores densifier state and stage
+        self.load_state_dict(ckpt["state_dict"])
+        optimizer.load_state_dict(ckpt["optimizer_states"][0])
+        self.rollbacks, self.lr_scale = rollbacks, lr_scale
+        stage1 = int((self.cfg.get("stages") or {}).get("stage1_steps", 0))
+        if 0 < stage1 and int(ckpt.get("global_step", 0)) < stage1 <= self.global_step:
+            self.begin_stage2(stage1)  # the step count goes on: stage 2 began after that checkpoint was written
+        print(
+            f"[splatrig] {message}; rolled back to {last} (step {ckpt.get('global_step')}) with learning rates x"
+            f"{self.lr_scale:g} (rollback {self.rollbacks} of {self.divergence.max_rollbacks})",
+            file=sys.stderr,
+        )
+
     def _densifier_optimizers(self, optimizer: torch.optim.Optimizer) -> dict[str, torch.optim.Optimizer]:
         """One optimizer serves every per-Gaussian key; the surgery finds each key's group by its name."""
         return {g["name"]: optimizer for g in optimizer.param_groups if g["name"] in GAUSSIAN_KEYS}
@@ -234,6 +303,8 @@ class SplatModule(L.LightningModule):
             "corrector_enabled": bool(getattr(self.avatar.corrector, "enabled", True)),
             "deformer_enabled": bool(getattr(self.avatar.deformer, "enabled", True)),
         }
+        checkpoint["splatrig_divergence"] = {"lr_scale": self.lr_scale, "rollbacks": self.rollbacks}
+        checkpoint["splatrig_rng"] = rng_states()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         stored_cfg = checkpoint.get("hyper_parameters", {}).get("cfg")
@@ -244,6 +315,11 @@ class SplatModule(L.LightningModule):
         state = checkpoint.get("densifier_state")
         if state is not None:
             self.densifier_state = {k: (v.to(self.device) if isinstance(v, Tensor) else v) for k, v in state.items()}
+        if "splatrig_rng" in checkpoint and self._trainer is not None:  # resuming: the model's random streams go on
+            restore_rng_states(checkpoint["splatrig_rng"])
+        divergence = checkpoint.get("splatrig_divergence", {})
+        self.lr_scale = float(divergence.get("lr_scale", self.lr_scale))
+        self.rollbacks = int(divergence.get("rollbacks", self.rollbacks))
         stage = checkpoint.get("splatrig_stage", {})
         if "corrector_enabled" in stage:
             self.avatar.corrector.enabled = stage["corrector_enabled"]
@@ -255,19 +331,49 @@ class SplatModule(L.LightningModule):
 STRUCTURAL_GROUPS = ("body", "corrector", "deformer", "data")
 
 
+def rng_states() -> dict[str, Any]:
+    """The global random streams (torch CPU and CUDA, numpy, python): densification draws from them."""
+    import random
+
+    import numpy as np
+
+    states: dict[str, Any] = {"torch": torch.get_rng_state(), "numpy": np.random.get_state()}
+    states["python"] = random.getstate()
+    if torch.cuda.is_available():
+        states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
+
+
+def restore_rng_states(states: dict[str, Any]) -> None:
+    import random
+
+    import numpy as np
+
+    torch.set_rng_state(states["torch"].cpu())
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+    if "cuda" in states and torch.cuda.is_available() and len(states["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(states["cuda"])
+
+
 def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
-    problems = []
+    """The stored tensors fit this run's model only if its structural components are the same ones, built alike."""
+    problems, fixes = [], []
     for group in STRUCTURAL_GROUPS:
         old_name, _ = node_kwargs(stored.get(group))
         new_name, _ = node_kwargs(current.get(group))
         if old_name != new_name:
             problems.append(f"{group}: checkpoint has '{old_name}', this run has '{new_name}'")
+            fixes.append(f"{group}={old_name}")
+    old_body, new_body = node_kwargs(stored.get("body"))[1], node_kwargs(current.get("body"))[1]
+    if not problems and old_body != new_body:  # same body, another build of it (e.g. anny's skeleton)
+        for k in sorted(k for k in set(old_body) | set(new_body) if old_body.get(k) != new_body.get(k)):
+            problems.append(f"body.{k}: checkpoint has {old_body.get(k)!r}, this run has {new_body.get(k)!r}")
+            fixes.append(f"body.{k}={old_body.get(k)}")
     if problems:
         raise ConfigError(
             "the checkpoint was made with an incompatible config (" + "; ".join(problems) + "). Resume with the "
-            "same choices (e.g. `"
-            + " ".join(f"{g}={node_kwargs(stored.get(g))[0]}" for g in STRUCTURAL_GROUPS)
-            + "`), or start a new run without ckpt_path."
+            "checkpoint's choices (`" + " ".join(fixes) + "`), or start a new run without ckpt_path."
         )
 
 

@@ -6,7 +6,7 @@ wrapper"). Decisions:
 - means' = A_i x + t_i (centres="blended", ours): the exact LBS position, so Gaussians follow the skinned mesh
   exactly. centres="rigid" is the paper's eq. 4, R_i x + t_i: the centre moves by the rotation part only, so across a
   bent joint it does not shrink towards the bone with the mesh.
-- quats' = quat(R_i) * q: the Gaussian's axes rotate with R_i.
+- quats' = quat(R_i) * q / |q|: the Gaussian's axes rotate with R_i.
 - scale: with stretch="diag", the Gaussian's scales are multiplied by the diagonal of S_i expressed in the Gaussian's
   own frame, k_l = a_l^T S_i a_l (a_l = its l-th axis). This is the "scale" part of P_i; the off-diagonal (shear)
   part is dropped, as the paper does. stretch="none" keeps the canonical scales (rotation + translation only).
@@ -18,7 +18,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from framework.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
+from framework.geometry import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from framework.guards import LBS_MIN_STRETCH, WEIGHT_VAR_MIN
 from framework.rig.polar import polar_decompose
 from framework.rig.sh_rotation import rotate_sh
 from framework.types import Gaussians
@@ -26,7 +27,6 @@ from framework.types import Gaussians
 STRETCH_MODES = ("diag", "none")
 POLAR_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 CENTRE_MODES = ("blended", "rigid")
-_MIN_STRETCH = 1e-4  # floor of the per-axis stretch (a degenerate blend would otherwise give log(0))
 
 
 def blended_affine(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
@@ -62,12 +62,13 @@ def apply_lbs(
     R, S = polar_decompose(A, None if polar_dtype is None else torch.promote_types(A.dtype, polar_dtype))  # [N, 3, 3]
     moves = A if centres == "blended" else R
     means = (moves @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
-    quats = quat_multiply(rotmat_to_quat(R), gaussians.quats)
+    # normalised first: a quaternion below NORM_EPS means the identity, and the product must still turn with R
+    quats = quat_multiply(rotmat_to_quat(R), quat_normalize(gaussians.quats))
     log_scales = gaussians.log_scales
     if stretch == "diag":
         Q = quat_to_rotmat(gaussians.quats)  # [N, 3, 3], columns = the Gaussian's axes
         k = ((S @ Q) * Q).sum(-2)  # [N, 3] = a_l^T S a_l
-        log_scales = log_scales + torch.log(k.clamp_min(_MIN_STRETCH))
+        log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH))
     return gaussians.replace(means=means, quats=quats, log_scales=log_scales, sh=rotate_sh(gaussians.sh, R))
 
 
@@ -85,7 +86,7 @@ def weight_std(weights6: Tensor) -> Tensor:
     Summing (not averaging) over joints keeps the value independent of how many joints a skeleton has far away."""
     # two-pass variance (Tensor.var over a middle dim was measured 3x slower on CPU, forward+backward)
     var = (weights6 - weights6.mean(dim=-2, keepdim=True)).square().mean(dim=-2)  # [N, J]
-    tiny = 1e-12
+    tiny = WEIGHT_VAR_MIN
     # sqrt has an infinite slope at 0 (rigid regions have var = 0 exactly): mask it so gradients stay finite.
     std = torch.where(var > tiny, torch.sqrt(torch.where(var > tiny, var, torch.ones_like(var))), torch.zeros_like(var))
     return std.sum(-1)

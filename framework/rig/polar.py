@@ -26,11 +26,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
+
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = {torch.float64: 1e-13, torch.float32: 1e-6}  # max |X_k+1 - X_k| that ends the iteration
 _NEWTON_UNCHECKED = 3  # iterations before convergence is first checked (each check is a host sync)
-_SINGULAR_TOL = 1e-6  # det(A) / (|A|_F / sqrt 3)^3 below this goes to the SVD path
-_TIKHONOV = 1e-3
 
 
 def _cross_rows(a: Tensor, b: Tensor) -> Tensor:
@@ -102,7 +102,7 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     a = Ac.permute(1, 2, 0)  # [3, 3, M]
     det = (a[0] * _cross_rows(a[1], a[2])).sum(0)  # [M]
     scale = a.square().sum((0, 1)).sqrt() / 3**0.5
-    good = det > _SINGULAR_TOL * scale**3
+    good = det > POLAR_SINGULAR_TOL * scale**3
     if bool(good.all()):  # the common case: one pass, no boolean indexing
         return _rotation_newton(Ac).reshape(shape).to(out_dtype)
     R = torch.empty_like(Ac)
@@ -146,7 +146,7 @@ class _PolarRotation(torch.autograd.Function):
         eye = torch.eye(3, dtype=S.dtype, device=S.device)
         B = tr[..., None, None] * eye - S  # [..., 3, 3] symmetric
         g = _vee(R64.transpose(-1, -2) @ G - G.transpose(-1, -2) @ R64)  # [..., 3]
-        d2 = (_TIKHONOV * tr.abs()) ** 2 + 1e-30
+        d2 = (POLAR_TIKHONOV * tr.abs()) ** 2 + POLAR_DAMPING_FLOOR
         h = _solve_sym3(B @ B + d2[..., None, None] * eye, (B @ g.unsqueeze(-1)).squeeze(-1))
         grad_A = R64 @ _skew(h)
         grad_A = torch.where(torch.isfinite(grad_A), grad_A, torch.zeros_like(grad_A))

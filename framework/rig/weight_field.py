@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from framework.guards import WEIGHT_FIELD_NAN_NODE, WEIGHT_SUM_MIN
 from framework.paths import cache_dir
 from framework.rig.closest_point import closest_points
 
@@ -47,7 +48,7 @@ def surface_weights(vertices, faces, skin_weights, points) -> np.ndarray:
     w = _np(skin_weights).astype(np.float64)
     face, bary, _ = closest_points(_np(vertices), f, _np(points))
     out = (bary[:, :, None] * w[f[face]]).sum(1)  # [Q, J]
-    return out / np.clip(out.sum(1, keepdims=True), 1e-12, None)
+    return out / np.clip(out.sum(1, keepdims=True), WEIGHT_SUM_MIN, None)
 
 
 def _cache_key(vertices, faces, skin_weights, bounds: np.ndarray, resolution: int) -> str:
@@ -160,8 +161,9 @@ class WeightField(nn.Module):
         lo, hi = self.bounds[0].to(points), self.bounds[1].to(points)
         dtype = self.table.dtype
         u = ((points.reshape(-1, 3) - lo) / (hi - lo)).to(dtype) * self.max_index  # [M, 3] node units (x, y, z)
-        # border clamp with zero gradient on and beyond the faces (as grid_sample's clip_coordinates)
-        u = torch.where((u > 0) & (u < self.max_index), u, torch.minimum(u.detach().clamp_min(0.0), self.max_index))
+        # border clamp with zero gradient on and beyond the faces (as grid_sample's clip_coordinates); NaN -> a node
+        outside = torch.minimum(u.detach().nan_to_num(nan=WEIGHT_FIELD_NAN_NODE).clamp_min(0.0), self.max_index)
+        u = torch.where((u > 0) & (u < self.max_index), u, outside)
         i0 = torch.minimum(u.detach().floor(), self.max_index - 1)  # lower corner, so that frac is in [0, 1]
         frac = u - i0  # [M, 3]
         i0 = i0.long()
@@ -170,7 +172,7 @@ class WeightField(nn.Module):
         J = self.num_joints
         pairs = self.table.as_strided((self.table.shape[0] - 1, 2 * J), (J, 1))  # row i: nodes i, i+1 (x-neighbours)
         w = _Trilinear.apply(pairs, base[:, None] + self.corner_offsets, frac).clamp_min(0.0)  # [M, J]
-        w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
+        w = w / w.sum(-1, keepdim=True).clamp_min(WEIGHT_SUM_MIN)
         return w.to(points.dtype).reshape(*shape, -1)
 
     forward = sample

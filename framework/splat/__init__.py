@@ -1,2 +1,3 @@
 """Splatting math with no state: camera projection of Gaussians, the SH colour basis, the (Gaussian, pixel) pair
-enumeration and the JAX kernels. Imports torch, jax and the core modules (`framework.types`, `geometry`) only."""
+enumeration, row bands for huge images and the JAX kernels. Imports torch, jax and the core modules
+(`framework.types`, `geometry`, `guards`) only."""

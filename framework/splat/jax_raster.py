@@ -25,6 +25,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
+from framework.guards import NORM_EPS
 from framework.splat.contract import ALPHA_MAX, ALPHA_MIN, EPS2D, LOG_T_MIN
 from framework.splat.projection import EXTEND_MAX, FOV_MARGIN
 from framework.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
@@ -33,7 +34,7 @@ from framework.splat.sh import SH_C0, SH_C1, SH_C2, SH_C3
 def quat_to_rotmat(q: jax.Array) -> jax.Array:
     """[N, 4] wxyz (any norm; zero -> identity, as framework.geometry) -> [N, 3, 3]."""
     n2 = jnp.sum(q * q, axis=-1, keepdims=True)
-    ok = n2 > 1e-24
+    ok = n2 > NORM_EPS**2
     qn = jnp.where(ok, q / jnp.sqrt(jnp.where(ok, n2, 1.0)), jnp.array([1.0, 0.0, 0.0, 0.0], q.dtype))
     w, x, y, z = qn[..., 0], qn[..., 1], qn[..., 2], qn[..., 3]
     rows = [
@@ -47,7 +48,7 @@ def quat_to_rotmat(q: jax.Array) -> jax.Array:
 def sh_colors(degree: int, coeffs: jax.Array, dirs: jax.Array) -> jax.Array:
     """clamp(SH(dirs) + 0.5, 0): coeffs [..., K, 3], dirs [..., 3] (unnormalised) -> [..., 3]."""
     n2 = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
-    d = dirs / jnp.sqrt(jnp.maximum(n2, 1e-24))  # as torch's norm().clamp_min(1e-12), with a finite gradient at 0
+    d = dirs / jnp.sqrt(jnp.maximum(n2, NORM_EPS**2))  # as torch's norm().clamp_min(1e-12), with a finite gradient at 0
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     basis = [jnp.full_like(x, SH_C0)]
     if degree >= 1:
@@ -106,6 +107,22 @@ def _wbs_bwd(res: tuple[jax.Array, jax.Array], g: jax.Array) -> tuple[jax.Array,
 _weighted_basis_sum.defvjp(_wbs_fwd, _wbs_bwd)
 
 
+@jax.custom_jvp
+def quotient(x: jax.Array, y: jax.Array) -> jax.Array:
+    """x / y whose derivative never forms y^2: JAX's own rule, -x / y^2, overflows float32 once y > 1.8e19 (the
+    determinant of a Gaussian a few 1e5 px wide) and silently drops that term of the gradient. As torch's rule:
+    d(x / y) = dx / y - ((x / y) / y) dy."""
+    return x / y
+
+
+@quotient.defjvp
+def _quotient_jvp(primals: tuple[jax.Array, jax.Array], tangents: tuple[jax.Array, jax.Array]):
+    x, y = primals
+    dx, dy = tangents
+    q = x / y
+    return q, dx / y - (q / y) * dy
+
+
 @partial(jax.jit, static_argnames=("width", "height", "sh_degree"))
 def project(
     means: jax.Array,  # [N, 3]
@@ -154,10 +171,11 @@ def project(
     cxx = cov[..., 0, 0] + EPS2D
     cxy = cov[..., 0, 1]
     cyy = cov[..., 1, 1] + EPS2D
-    det = cxx * cyy - cxy * cxy
+    # without the cancellation of cxx cyy - cxy^2 (Lagrange's identity, as framework.splat.projection)
+    det = jnp.sum(jnp.square(jnp.cross(T[..., 0, :], T[..., 1, :])), axis=-1) + EPS2D * (cxx + cyy - EPS2D)
     ok_det = det > 0
     det_safe = jnp.where(ok_det, det, 1.0)
-    conics = jnp.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], axis=-1)  # [C, N, 3]
+    conics = quotient(jnp.stack([cyy, -cxy, cxx], axis=-1), det_safe[..., None])  # [C, N, 3]
 
     cam_pos = -jnp.sum(R * t[:, :, None], axis=1)  # [C, 3] camera centres in world space, -R^T t
     dirs = means[None, :, :] - cam_pos[:, None, :]  # [C, N, 3]

@@ -78,7 +78,9 @@ def project_gaussians(
     cxx = (T0 * T0).sum(-1) + eps2d  # dilated Sigma2d = T T^T + eps2d I
     cxy = (T0 * T1).sum(-1)
     cyy = (T1 * T1).sum(-1) + eps2d
-    det = cxx * cyy - cxy * cxy
+    # det = cxx cyy - cxy^2 without the cancellation: |T0|^2 |T1|^2 - (T0.T1)^2 = |T0 x T1|^2 (Lagrange's identity),
+    # so a needle-thin Gaussian (anisotropy 1e6) keeps its determinant's digits in float32 instead of losing them all.
+    det = torch.linalg.cross(T0, T1).square().sum(-1) + eps2d * (cxx + cyy - eps2d)
     ok_det = det > 0
     det_safe = torch.where(ok_det, det, torch.ones_like(det))
     conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], dim=-1)  # [C, N, 3]

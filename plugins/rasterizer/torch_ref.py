@@ -34,6 +34,7 @@ from framework.interfaces.rasterizer import (
     check_render_inputs,
 )
 from framework.registry import register
+from framework.splat.bands import row_bands
 from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
 from framework.splat.projection import project_gaussians
 from framework.splat.sh import eval_sh
@@ -261,8 +262,21 @@ def composite(
     width: int,
     height: int,
     kernels: Kernels,
+    split_rows: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Entries sorted by depth -> per-pixel (rgb sum [CHW, 3], T_final [CHW], depth [CHW])."""
+    """Entries sorted by depth -> per-pixel (rgb sum [CHW, 3], T_final [CHW], depth [CHW]).
+
+    A render whose screen boxes hold more pairs than `framework.splat.bands` allows is drawn in row bands (centres
+    shifted up by the band's first row), so a 4096 x 4096 image needs memory for one band's pairs, not all of them."""
+    bands = row_bands(means2d, half, width, height) if split_rows else [(0, height)]
+    if len(bands) > 1:
+        entries = (conics, opacities, colors, depths, cam, half, num_cameras, width)
+        shift = means2d.new_tensor([0.0, 1.0])
+        parts = [composite(means2d - r0 * shift, *entries, r1 - r0, kernels, False) for r0, r1 in bands]
+        return tuple(
+            torch.cat([p[i].reshape(num_cameras, -1, width, *p[i].shape[1:]) for p in parts], dim=1).flatten(0, 2)
+            for i in range(3)
+        )  # type: ignore[return-value]
     # Shift each entry's y by camera * height so row = pix // width addresses every camera's pixels.
     mx = means2d[:, 0].contiguous()
     my = (means2d[:, 1] + cam.to(means2d.dtype) * height).contiguous()
@@ -302,6 +316,11 @@ class TorchRefRasterizer(Rasterizer):
         far: float = FAR_PLANE,
     ) -> RenderOutput:
         check_render_inputs(means, quats, scales, opacities, sh, sh_degree)
+        if torch.is_autocast_enabled(means.device.type):
+            # autocast would run the projection's products in half precision: the contract computes in float32
+            with torch.autocast(means.device.type, enabled=False):
+                return self.render(means, quats, scales, opacities, sh, cameras, sh_degree=sh_degree,
+                                   background=background, near=near, far=far)  # fmt: skip
         if means.dtype in (torch.float16, torch.bfloat16):
             # Half precision cannot hold transmittances near 1e-4 or conics of small Gaussians: render in float32
             # and hand back the caller's dtype (gradients flow through the casts).

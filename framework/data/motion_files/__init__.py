@@ -7,6 +7,8 @@ framework.data (Rig, the ZJU layout) and numpy / scipy / bvhio; never lightning/
 
 from __future__ import annotations
 
+import pickle
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -25,15 +27,29 @@ def read_motion_file(
 
     Pose files (framework.data.motion_files.studio) must already be for this body; AMASS (.npz with `trans`) and BVH
     files are retargeted onto `rig` (framework.data.motion_files.retarget), placed relative to `reference_root`
-    [4, 4] (the avatar's first training frame's root transform) when given.
+    [4, 4] (the avatar's first training frame's root transform) when given. A file numpy cannot read, or a frame
+    with a non-finite value, is a SplatrigError naming the file (and the frame).
     """
+    try:
+        motion = _read_motion(Path(path), rig, num_joints, reference_root)
+    except (OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
+        raise SplatrigError(f"motion={path}: cannot be read ({type(exc).__name__}: the file is truncated or not in "
+                            f"the format its suffix says); re-export it.") from None  # fmt: skip
+    for name, values in (("poses", motion.poses), ("roots", motion.roots)):
+        if values is not None and not np.isfinite(values).all():
+            frame = int(np.flatnonzero((~np.isfinite(values.reshape(values.shape[0], -1))).any(1))[0])
+            raise SplatrigError(f"motion={path}: `{name}` of frame {frame} holds a non-finite value; expected "
+                                f"finite numbers (re-export the motion or drop that frame).")  # fmt: skip
+    return motion
+
+
+def _read_motion(path: Path, rig: Rig | None, num_joints: int, reference_root: np.ndarray | None) -> Motion:
     from framework.data.motion_files.amass import is_amass_file, read_amass
     from framework.data.motion_files.bvh import read_bvh
     from framework.data.motion_files.retarget import retarget
     from framework.data.motion_files.smpl_skeleton import BODY_JOINTS, SMPL_JOINT_NAMES
     from framework.data.motion_files.studio import read_pose_file
 
-    path = Path(path)
     if not path.exists():
         raise SplatrigError(f"motion={path}: no such file or folder; expected a pose file (.npz/.npy), a params "
                             f"folder, an AMASS-layout .npz or a .bvh file.")  # fmt: skip

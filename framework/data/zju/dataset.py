@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from framework.data.sequence_dataset import SequenceDataset
+from framework.data.zju.layout import ZjuMissingFileError
 from framework.data.zju.protocols import PROTOCOL_FRAMES, protocol_preset, sequence_key
 from framework.data.zju.reader import ZjuSequence
 
@@ -51,7 +52,7 @@ class ZjuMocapDataset(SequenceDataset):
         root_path = Path(os.path.expanduser(str(root)))
         seq = ZjuSequence(root_path)
         if mask_dir != "auto" and not (root_path / mask_dir).is_dir():
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"zju_mocap: mask_dir='{mask_dir}' but {root_path / mask_dir} does not exist; "
                 f"found {seq.available_mask_dirs() or 'no mask folder'}; use mask_dir=auto"
             )

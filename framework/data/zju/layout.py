@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 
 ANNOTS = "annots.npy"
@@ -53,6 +54,31 @@ _CORE313 = re.compile(r"_\((\d+)\)_(\d+)_")  # CoreView_313_Camera_(1)_0001_2019
 
 class ZjuFormatError(SplatrigError, ValueError):
     """A sequence on disk does not follow the layout; the message names the file, what was expected and found."""
+
+
+class ZjuMissingFileError(ZjuFormatError, FileNotFoundError):
+    """A file the layout needs is missing (still a FileNotFoundError for code that tolerates optional files)."""
+
+
+IMAGE_END_MARKERS = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND\xaeB`\x82"}
+
+
+def check_complete(path: Path, what: str = "image file") -> None:
+    """Raise ZjuFormatError when a JPEG or PNG file lacks its end marker: a copy or an export cut short. (OpenCV
+    decodes a truncated JPEG without an error, grey below the cut.)"""
+    marker = IMAGE_END_MARKERS.get(path.suffix.lower())
+    if marker is None:
+        return
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 64))
+        tail = f.read()
+    if marker not in tail:
+        end = "end-of-image marker FF D9" if path.suffix.lower() in (".jpg", ".jpeg") else "IEND chunk"
+        raise ZjuFormatError(
+            f"{what} {path} is truncated: it does not end with the {path.suffix.lstrip('.').upper()} {end}; copy or "
+            f"export it again."
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------- naming
@@ -101,11 +127,9 @@ def mask_relpath(image_path: str) -> str:
 
 # ----------------------------------------------------------------------------------------------------------- io
 def save_pickled_dict(path: Path, data: dict) -> None:
-    """np.save of a dict, as the public files are (a pickled 0-d object array)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, np.array(data, dtype=object), allow_pickle=True)
-    os.replace(tmp, path)
+    """np.save of a dict, as the public files are (a pickled 0-d object array); atomic."""
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.array(data, dtype=object), allow_pickle=True)
 
 
 def load_pickled_dict(path: Path) -> dict:
@@ -123,23 +147,26 @@ def load_pickled_dict(path: Path) -> dict:
 
 
 def write_image(path: Path, rgb: np.ndarray, jpeg_quality: int = 95) -> None:
+    """RGB uint8 [H, W, 3] (or a single-channel mask [H, W]) to a JPEG/PNG file, atomically."""
     import cv2
 
-    path.parent.mkdir(parents=True, exist_ok=True)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if path.suffix.lower() in (".jpg", ".jpeg") else []
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1]), params):
-        raise OSError(f"could not write image {path}")
+    pixels = np.ascontiguousarray(rgb[..., ::-1] if rgb.ndim == 3 else rgb)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), pixels, params):
+            raise OSError(f"could not write image {path}")
 
 
 def read_image(path: Path) -> np.ndarray:
     """uint8 [H, W, 3] RGB."""
     import cv2
 
+    if not path.exists():
+        raise ZjuMissingFileError(f"image file {path} is missing (listed in annots.npy 'ims')")
+    check_complete(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        if not path.exists():
-            raise FileNotFoundError(f"image file {path} is missing (listed in annots.npy 'ims')")
-        raise ZjuFormatError(f"image file {path} exists but cannot be decoded")
+        raise ZjuFormatError(f"image file {path} exists but cannot be decoded as an image; export it again")
     return img[..., ::-1].copy()
 
 
@@ -148,9 +175,10 @@ def read_mask_file(path: Path, any_channel: bool = False) -> np.ndarray:
     wherever any colour channel is (part-label masks such as SCHP's palette PNGs colour some parts with R = 0)."""
     import cv2
 
+    check_complete(path, "mask file")
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
-        raise ZjuFormatError(f"mask file {path} exists but cannot be decoded")
+        raise ZjuFormatError(f"mask file {path} exists but cannot be decoded as an image; export it again")
     if m.ndim == 3:
         if any_channel:
             return (m[..., :3] != 0).any(-1).astype(np.uint8)

@@ -15,12 +15,15 @@ from framework.data.zju.layout import (
     PARAMS_DIRS,
     VERTICES_DIRS,
     ZjuFormatError,
+    ZjuMissingFileError,
     frame_number_from_path,
     load_pickled_dict,
     mask_relpath,
     read_image,
     read_mask_file,
 )
+
+ROTATION_TOL = 1e-3  # |R R^T - I| and |det R - 1| a calibration rotation may be off by (float32 exports, rounding)
 
 
 # ----------------------------------------------------------------------------------------------------------- reader
@@ -52,6 +55,26 @@ class ZjuCameras:
         out[:, :3, 3] = self.T_m
         return out
 
+    def check(self, where: str | os.PathLike) -> None:
+        """Every camera has a rotation R (orthonormal, det +1, within ROTATION_TOL) and positive focal lengths."""
+        for c in range(self.num):
+            R, K = self.R[c], self.K[c]
+            off = float(np.abs(R @ R.T - np.eye(3)).max())
+            det = float(np.linalg.det(R))
+            if off > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
+                raise ZjuFormatError(
+                    f"{where}: the rotation R of camera {c} is not a rotation (|R R^T - I| = {off:.3g}, det = "
+                    f"{det:.3g}); expected an orthonormal world-to-camera rotation with det +1. Export the calibration "
+                    f"again (a scaled or mirrored R is not a camera pose)."
+                )
+            fx, fy = float(K[0, 0]), float(K[1, 1])
+            if fx <= 0 or fy <= 0 or np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-6:
+                raise ZjuFormatError(
+                    f"{where}: the intrinsics K of camera {c} have fx = {fx:g}, fy = {fy:g}, last row "
+                    f"{K[2].tolist()}; expected positive focal lengths in pixels, K = [[fx, 0, cx], [0, fy, cy], "
+                    f"[0, 0, 1]]."
+                )
+
     def K_splatrig(self) -> np.ndarray:
         """K with pixel centres at (j + 0.5, i + 0.5), the convention of framework.types / the rasterizers."""
         K = self.K.copy()
@@ -70,7 +93,7 @@ class ZjuSequence:
             hint = ""
             if (self.root / ".cams_partial.npy").exists():
                 hint = " A writer started here but never called finish(); re-run the generator."
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"{path} is missing: expected annots.npy (dict with 'cams' K/D/R/T and per-frame 'ims') at the root "
                 f"of a ZJU-MoCap-layout sequence; check `root` (found {self._listing()}).{hint}"
             )
@@ -115,7 +138,9 @@ class ZjuSequence:
             bad = np.where(~np.isfinite(arr).reshape(C, -1).all(1))[0]
             if bad.size:
                 raise ZjuFormatError(f"{path}: cams['{name}'] of camera {int(bad[0])} has non-finite values")
-        return ZjuCameras(K=K, D=D, R=R, T_mm=T)
+        cameras = ZjuCameras(K=K, D=D, R=R, T_mm=T)
+        cameras.check(path)
+        return cameras
 
     def _parse_ims(self, ims: list, path: Path) -> list[list[str]]:
         if len(ims) == 0:
@@ -167,7 +192,7 @@ class ZjuSequence:
         """uint8 [H, W, 3] RGB, as stored (distorted)."""
         path = self.image_path(frame, view)
         if not path.exists():
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"image file {path} of frame {frame}, view {view} is missing: annots.npy lists "
                 f"'{self.ims[frame][view]}' but no such file exists under {self.root} (expected a {path.suffix} image)"
             )
@@ -187,7 +212,7 @@ class ZjuSequence:
         for c in candidates:
             if c.exists():
                 return c
-        raise FileNotFoundError(
+        raise ZjuMissingFileError(
             f"mask of frame {frame}, view {view} is missing: looked for {', '.join(str(c) for c in candidates)}"
         )
 
@@ -202,7 +227,7 @@ class ZjuSequence:
     def _numbered(self, dirname: str | None, kind: str, frame: int) -> Path:
         n = self.file_numbers[frame]
         if dirname is None:
-            raise FileNotFoundError(
+            raise ZjuMissingFileError(
                 f"{kind} of frame {frame}: no {' or '.join(PARAMS_DIRS if kind == 'params' else VERTICES_DIRS)} "
                 f"folder under {self.root}"
             )
@@ -210,7 +235,7 @@ class ZjuSequence:
             p = self.root / dirname / name
             if p.exists():
                 return p
-        raise FileNotFoundError(
+        raise ZjuMissingFileError(
             f"{kind} of frame {frame} is missing: expected {self.root / dirname / f'{n}.npy'} (file number {n} from "
             f"image '{self.ims[frame][0]}')"
         )

@@ -4,11 +4,13 @@ the EasyMocap converter write through it."""
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from framework.atomic import atomic_path
 from framework.data.zju.layout import (
     ANNOTS,
     MASK_DIRS,
@@ -32,8 +34,12 @@ class ZjuWriter:
 
     Frames may be written by several writer instances (processes) into the same root; `finish(num_frames)` rebuilds
     the `ims` list from the deterministic names, so any one process can finish. Until `finish`, there is no
-    annots.npy, so a half-written sequence is never mistaken for a complete one.
+    annots.npy, so a half-written sequence is never mistaken for a complete one. Every file is written atomically and
+    a frame is marked done (`.frames_done/<frame>`) only after all its files, so an interrupted writer can be resumed
+    with `frame_done` telling which frames are complete.
     """
+
+    DONE = ".frames_done"
 
     def __init__(
         self,
@@ -136,33 +142,24 @@ class ZjuWriter:
         vertices: np.ndarray | None = None,
     ) -> None:
         """`write_frame` for images that are already files with this writer's extension (lossless conversion)."""
-        import shutil
-
         if len(image_files) != self.num_cameras:
             raise ValueError(f"frame {frame}: {len(image_files)} image files for {self.num_cameras} cameras")
         for v, src in enumerate(image_files):
             if Path(src).suffix.lower() != self.image_ext.lower():
                 raise ValueError(f"frame {frame}: {src} is not a {self.image_ext} file; copy_frame does not re-encode")
-            dst = self.root / self.image_path(frame, v)
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            tmp = dst.with_name(dst.name + ".tmp")
-            shutil.copyfile(src, tmp)
-            os.replace(tmp, dst)
+            with atomic_path(self.root / self.image_path(frame, v)) as tmp:
+                shutil.copyfile(src, tmp)
         self._write_masks_and_body(frame, np.asarray(masks), params, vertices)
 
     def write_masks(self, frame: int, masks: np.ndarray, mask_dir: str) -> None:
         """Masks [C, H, W] (foreground non-zero) of one frame into `mask_dir` (e.g. a second, parser-made set in
-        mask_cihp/ next to mask/, as ZJU-MoCap ships both)."""
-        import cv2
-
+        mask_cihp/ next to mask/, as ZJU-MoCap ships both). Written atomically; write them before `write_frame` /
+        `copy_frame` of the same frame, which marks the frame done."""
         if mask_dir not in MASK_DIRS:
             raise ValueError(f"mask_dir must be one of {MASK_DIRS}, got '{mask_dir}'")
         for v in range(self.num_cameras):
-            mpath = self.root / mask_dir / mask_relpath(self.image_path(frame, v))
-            mpath.parent.mkdir(parents=True, exist_ok=True)
             m = (np.asarray(masks[v]) != 0).astype(np.uint8) * np.uint8(self.mask_value)
-            if not cv2.imwrite(str(mpath), m):
-                raise OSError(f"could not write mask {mpath}")
+            write_image(self.root / mask_dir / mask_relpath(self.image_path(frame, v)), m)
 
     def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
                               vertices: np.ndarray | None) -> None:  # fmt: skip
@@ -174,9 +171,15 @@ class ZjuWriter:
             verts = np.asarray(vertices, dtype=np.float32)
             if verts.ndim != 2 or verts.shape[1] != 3:
                 raise ValueError(f"frame {frame}: vertices must be [V, 3], got {verts.shape}")
-            (self.root / "vertices").mkdir(parents=True, exist_ok=True)
-            np.save(self.root / "vertices" / f"{n}.npy", verts)
+            with atomic_path(self.root / "vertices" / f"{n}.npy") as tmp:
+                np.save(tmp, verts)
+        with atomic_path(self.root / self.DONE / str(frame)) as tmp:
+            tmp.touch()
         self._written.add(frame)
+
+    def frame_done(self, frame: int) -> bool:
+        """Every file of `frame` was written (by this or an earlier, interrupted writer)."""
+        return (self.root / self.DONE / str(frame)).is_file()
 
     def finish(self, num_frames: int | None = None) -> Path:
         """Write annots.npy for frames 0..num_frames-1 (default: 0..max written); checks every image exists."""
@@ -205,4 +208,5 @@ class ZjuWriter:
         save_pickled_dict(out, {"cams": cams, "ims": ims})
         if partial.exists():
             partial.unlink()
+        shutil.rmtree(self.root / self.DONE, ignore_errors=True)
         return out

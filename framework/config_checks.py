@@ -1,0 +1,123 @@
+"""Config values checked where they enter: before anything is built, each entry point checks the numbers of its
+config and stops at the first bad one with a ConfigError naming the key, what was expected, what was found and the
+fix (components check their own options when they are built; datasets check their files when they are opened)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from framework.build import ConfigError
+from framework.splat.sh import MAX_SH_DEGREE
+
+_ABSENT = object()
+
+
+def _value(cfg: DictConfig, key: str) -> Any:
+    return OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=False)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _expect(cfg: DictConfig, key: str, ok: Callable[[Any], bool], expected: str, fix: str) -> None:
+    value = _value(cfg, key)
+    if value is _ABSENT or value is None:
+        return
+    if not ok(value):
+        raise ConfigError(f"config key {key}: expected {expected}, found {value!r}. {fix}")
+
+
+def _positive_int(cfg: DictConfig, key: str, what: str, example: int) -> None:
+    _expect(cfg, key, lambda v: _is_int(v) and v >= 1, f"a positive integer ({what})", f"For example {key}={example}.")
+
+
+def check_no_missing(cfg: DictConfig) -> None:
+    """No key left at `???` (a value its config file asks the command line for, e.g. data.root of zju_mocap)."""
+    missing = sorted(k for k in OmegaConf.missing_keys(cfg) if not k.startswith("hydra"))
+    if missing:
+        key = missing[0]
+        raise ConfigError(f"config key {key}: expected a value, found none ('???' in its config file). Set it on the "
+                          f"command line, e.g. {key}=<value>.")  # fmt: skip
+
+
+def check_train_config(cfg: DictConfig) -> None:
+    """The numbers of a `python -m framework.train` config (profile values arrive through interpolation)."""
+    check_no_missing(cfg)
+    for key, what, example in (
+        ("trainer.max_steps", "optimisation steps", 3000),
+        ("trainer.val_every", "steps between validations", 500),
+        ("trainer.log_every", "steps between logged values", 25),
+        ("callbacks.checkpoint_every", "steps between last.ckpt saves", 250),
+        ("gaussians.num", "initial Gaussians", 10000),
+        ("gaussians.sh_increase_every", "steps per SH degree", 1000),
+        ("eval.val_max_items", "validation images", 6),
+        ("data.resolution", "image side in pixels", 128),
+        ("data.views", "cameras", 12),
+        ("data.frames", "frames", 60),
+        ("data.num_train_views", "cameras", 24),
+        ("data.num_test_views", "cameras", 6),
+        ("data.supersample", "rays per pixel side", 1),
+    ):
+        _positive_int(cfg, key, what, example)
+    _expect(cfg, "callbacks.image_every", lambda v: _is_int(v) and v >= 0, "an integer >= 0 (0: no image grids)",
+            "For example callbacks.image_every=500.")  # fmt: skip
+    _expect(cfg, "gaussians.sh_degree", lambda v: _is_int(v) and 0 <= v <= MAX_SH_DEGREE,
+            f"an integer in 0..{MAX_SH_DEGREE} (real spherical harmonics up to degree 3)",
+            f"Use gaussians.sh_degree={MAX_SH_DEGREE}.")  # fmt: skip
+    _expect(cfg, "gaussians.opacity", lambda v: _is_number(v) and 0 < v < 1, "an initial opacity in (0, 1)",
+            "For example gaussians.opacity=0.1.")  # fmt: skip
+    _expect(cfg, "stages.stage1_steps", lambda v: _is_int(v) and v >= 0, "an integer >= 0 (0: no stage 1)",
+            "For example stages.stage1_steps=1000.")  # fmt: skip
+    stage1, steps = _value(cfg, "stages.stage1_steps"), _value(cfg, "trainer.max_steps")
+    fast = bool(_value(cfg, "trainer.fast_dev_run") not in (_ABSENT, None, False))
+    if _is_int(stage1) and _is_int(steps) and 0 < steps <= stage1 and not fast:
+        raise ConfigError(
+            f"config key stages.stage1_steps: expected fewer steps than the run's trainer.max_steps={steps}, found "
+            f"{stage1}; stage 2 (the corrector and the blend-weight residual) would never start. Lower "
+            f"stages.stage1_steps or raise trainer.max_steps."
+        )
+    terms = _value(cfg, "loss.terms")
+    if isinstance(terms, DictConfig):
+        for name in terms:
+            key = f"loss.terms.{name}.weight"
+            _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite weight >= 0 (0 disables the term)",
+                    f"For example {key}=0.2.")  # fmt: skip
+    rates = _value(cfg, "optim.lr")
+    if isinstance(rates, DictConfig):
+        for name in rates:
+            _expect(cfg, f"optim.lr.{name}", lambda v: _is_number(v) and v >= 0, "a finite learning rate >= 0",
+                    f"For example optim.lr.{name}=1e-3.")  # fmt: skip
+    _expect(cfg, "optim.means_final_ratio", lambda v: _is_number(v) and 0 < v <= 1, "a ratio in (0, 1]",
+            "For example optim.means_final_ratio=0.01.")  # fmt: skip
+
+
+def check_evaluate_config(cfg: DictConfig) -> None:
+    """`python -m framework.evaluate`: the checkpoint is required; splits and metrics are lists of names."""
+    if OmegaConf.is_missing(cfg, "ckpt"):
+        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
+                          "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt).")  # fmt: skip
+    for key, example in (("splits", "[novel_view,novel_pose]"), ("metrics", "[psnr,ssim]")):
+        _expect(cfg, key, lambda v: OmegaConf.is_list(v) and all(isinstance(x, str) for x in v), "a list of names",
+                f"For example {key}={example}.")  # fmt: skip
+
+
+def check_render_config(cfg: DictConfig) -> None:
+    """`python -m framework.render`: the checkpoint is required; sizes and counts are positive."""
+    if OmegaConf.is_missing(cfg, "ckpt"):
+        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
+                          "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt).")  # fmt: skip
+    _expect(cfg, "cameras", lambda v: v in ("orbit", "fixed"), "'orbit' or 'fixed'", "For example cameras=orbit.")
+    _positive_int(cfg, "resolution", "image side in pixels; null keeps the training resolution", 512)
+    _positive_int(cfg, "fps", "frames per second of the video", 25)
+    _positive_int(cfg, "max_frames", "frames to render; null renders the whole motion", 100)
+    _expect(cfg, "camera_index", lambda v: _is_int(v) and v >= 0, "a camera index >= 0", "For example camera_index=0.")
+    _expect(cfg, "orbit_turns", _is_number, "a finite number of turns", "For example orbit_turns=1.0.")

@@ -1,0 +1,101 @@
+"""A training that goes wrong says so: a NaN or Inf in the loss, a gradient or a parameter is caught within one step.
+
+Per step the module folds the total loss, every parameter group's gradient and every parameter (the values this
+step's forward used) into ONE scalar (`finite_probe`: a sum of sums, non-finite exactly when some entry is NaN or
+Inf, or the sum overflows) and reads it once on the host, before the optimizer step, so a bad step never reaches
+the weights. On steps that write a checkpoint the parameters are probed once more after the update (optimizer and
+densifier), so a checkpoint never stores non-finite values. Only when a probe is non-finite does the slow path
+(`diagnose`) look at every term and group to name them.
+
+What happens then is `divergence.action` (conf/train.yaml):
+- `stop` (default): raise `TrainingDiverged` with one message naming the step, the loss terms and the parameter
+  groups; the checkpoints on disk are those of the last good step (no checkpoint is written after a bad one).
+- `rollback`: reload the last good checkpoint (`last.ckpt`: parameters, optimizer and densifier state, stage), multiply
+  every learning rate by `lr_factor`, print the same message once, and go on; the step counter keeps counting (the
+  steps since that checkpoint are lost, not replayed). After `max_rollbacks` rollbacks it stops as `stop` does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from framework.errors import SplatrigError
+
+ACTIONS = ("stop", "rollback")
+
+
+class TrainingDiverged(SplatrigError):
+    """NaN or Inf in the loss, a gradient or a parameter (the message names the step, the terms and the groups)."""
+
+
+@dataclass(frozen=True)
+class DivergencePolicy:
+    action: str = "stop"
+    lr_factor: float = 0.5
+    max_rollbacks: int = 3
+
+    @classmethod
+    def from_config(cls, node: Mapping[str, Any] | None) -> DivergencePolicy:
+        """From the `divergence` config node; bad values raise ValueError naming the key."""
+        node = dict(node or {})
+        policy = cls(
+            action=str(node.get("action", cls.action)),
+            lr_factor=float(node.get("lr_factor", cls.lr_factor)),
+            max_rollbacks=int(node.get("max_rollbacks", cls.max_rollbacks)),
+        )
+        if policy.action not in ACTIONS:
+            raise ValueError(f"divergence.action: expected one of {ACTIONS}, found '{policy.action}'.")
+        if not 0.0 < policy.lr_factor < 1.0:
+            raise ValueError(f"divergence.lr_factor: expected a number in (0, 1), found {policy.lr_factor}.")
+        if policy.max_rollbacks < 0:
+            raise ValueError(f"divergence.max_rollbacks: expected >= 0, found {policy.max_rollbacks}.")
+        return policy
+
+
+def finite_probe(tensors: Iterable[Tensor | None]) -> Tensor:
+    """One scalar that is finite iff every given tensor is (None entries are skipped), unless a sum overflows float32
+    (entries around 1e32: a divergence of its own). Sums in the tensors' dtype: 3-4x faster than float64 sums on a CPU
+    (0.6 vs 2.4 ms for 1.5 M values, the parameters and gradients of 10k Gaussians)."""
+    sums = [t.detach().sum().float() for t in tensors if t is not None and t.numel()]
+    return torch.stack(sums).sum() if sums else torch.zeros(())
+
+
+def grads_and_params(optimizer: torch.optim.Optimizer) -> tuple[list[Tensor | None], list[Tensor]]:
+    """Every gradient and every parameter of the optimizer's groups."""
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    return [p.grad for p in params], params
+
+
+def _nonfinite_groups(optimizer: torch.optim.Optimizer, attr: str) -> list[str]:
+    out = []
+    for group in optimizer.param_groups:
+        tensors = [p if attr == "data" else p.grad for p in group["params"]]
+        if any(t is not None and not bool(torch.isfinite(t).all()) for t in tensors):
+            out.append(str(group.get("name", "?")))
+    return out
+
+
+def diagnose(step: int, total: Tensor, terms: Mapping[str, Tensor], optimizer: torch.optim.Optimizer) -> str:
+    """One sentence naming what is non-finite at `step` (the slow path, run only after the probe failed)."""
+    parts = []
+    bad_terms = {k: float(v) for k, v in terms.items() if not math.isfinite(float(v))}
+    if bad_terms:
+        parts.append("loss term " + ", ".join(f"'{k}' = {v}" for k, v in bad_terms.items()))
+    elif not math.isfinite(float(total)):
+        parts.append(f"the weighted total loss = {float(total)} (every term finite: a weight or an overflow)")
+    bad_params = _nonfinite_groups(optimizer, "data")
+    if bad_params:
+        parts.append("parameter values of group " + ", ".join(f"'{g}'" for g in bad_params) + " (from the previous "
+                     "step's optimizer or densifier update)")  # fmt: skip
+    bad_grads = _nonfinite_groups(optimizer, "grad")
+    if bad_grads:
+        parts.append("gradient of parameter group " + ", ".join(f"'{g}'" for g in bad_grads))
+    if not parts:
+        parts.append("the sum of the loss, gradients and parameters overflowed (every entry is finite)")
+    return f"training diverged at step {step}: non-finite " + "; ".join(parts)
