@@ -49,9 +49,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` to `path` atomically (see `atomic_path`); returns the path."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+    return Path(path)
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:

@@ -13,7 +13,6 @@ Exit status: 0 when every camera agrees, 1 when problems were found, 2 for unusa
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
+from framework.atomic import atomic_write_text
 from framework.errors import SplatrigError, reported_as_message
 
 CONFIG_PATH = "pkg://framework.conf"
@@ -68,9 +68,7 @@ def _body_geometry(ds: Any, body: Any):
 
 
 def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic_write_text(path, text)
 
 
 def run(cfg: DictConfig) -> int:

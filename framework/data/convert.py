@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from framework.atomic import atomic_write_text
 from framework.data.easymocap_layout import EasyMocapSequence
 from framework.data.sequence_dataset import frame_range
 from framework.data.zju.layout import ANNOTS
@@ -67,9 +68,7 @@ def easymocap_to_zju(
         "params_dir": str(seq.params_dir.relative_to(seq.root)),
         "frames": [seq.stems[f] for f in selected],  # frame i of OUT is the capture's frame stem frames[i]
     }
-    tmp = out / "easymocap_source.json.tmp"
-    tmp.write_text(json.dumps(source, indent=1))
-    os.replace(tmp, out / "easymocap_source.json")
+    atomic_write_text(out / "easymocap_source.json", json.dumps(source, indent=1))
     return writer.finish(len(selected)).parent
 
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from framework.atomic import atomic_path
+
 MASK_TINT = (40, 200, 255)
 MASK_OUTLINE = (255, 255, 0)
 SILHOUETTE_OUTLINE = (255, 60, 200)
@@ -68,15 +70,9 @@ def render_tile(
 
 
 def write_png(path, rgb: np.ndarray) -> None:
-    """Atomic PNG write of a uint8 RGB picture (tmp file + os.replace)."""
-    import os
-    from pathlib import Path
-
+    """Atomic PNG write of a uint8 RGB picture (framework.atomic)."""
     import cv2
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write {path}")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+            raise OSError(f"could not write {path}")

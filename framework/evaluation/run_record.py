@@ -36,8 +36,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from framework.atomic import atomic_write_text
 from framework.errors import SplatrigError
-from framework.paths import atomic_write_text
 
 SCHEMA = "splatrig.run/1"
 FILENAME = "results.json"

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 from framework.formats.splat_ply import read_splat_ply, write_splat_ply
 from framework.types import Gaussians
@@ -108,9 +109,8 @@ def write_package(out_dir: str | os.PathLike, package: AnimatablePackage) -> Pat
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def read_package(path: str | os.PathLike) -> AnimatablePackage:

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 from framework.types import Gaussians
 
@@ -76,11 +77,9 @@ def write_splat_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     from plyfile import PlyData, PlyElement
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     element = PlyElement.describe(gaussians_to_vertex_array(gaussians), "vertex")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    PlyData([element], text=False, byte_order="<").write(str(tmp))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        PlyData([element], text=False, byte_order="<").write(str(tmp))
     return path
 
 

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from framework.atomic import atomic_path
 
 
 def save_png(fig, path: Path, dpi: int = 120) -> Path:
-    """Save a matplotlib figure as `path` (through a temporary file and os.replace)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=dpi)
-    os.replace(tmp, path)
+    """Save a matplotlib figure as `path` (atomically, framework.atomic)."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
     return path

@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from framework.paths import atomic_write_text
+from framework.atomic import atomic_write_text
 from framework.plugins import format_table
 from framework.reporting.figures import save_png
 from framework.reporting.runs import ReportError, Run, group_runs

@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from framework.paths import atomic_write_text
+from framework.atomic import atomic_write_text
 from framework.plugins import format_table
 from framework.reporting.figures import save_png
 from framework.reporting.pareto import pareto_front

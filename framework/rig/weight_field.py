@@ -18,12 +18,12 @@ on the 7 x 8k training points (one CPU core), grid_sample 248 ms forward+backwar
 from __future__ import annotations
 
 import hashlib
-import os
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from framework.atomic import atomic_path
 from framework.guards import WEIGHT_FIELD_NAN_NODE, WEIGHT_SUM_MIN
 from framework.paths import cache_dir
 from framework.rig.closest_point import closest_points
@@ -75,10 +75,8 @@ def build_weight_grid(vertices, faces, skin_weights, bounds, resolution: int = 6
     w = surface_weights(vertices, faces, skin_weights, pts)  # [R^3, J]
     vol = torch.from_numpy(w.T.reshape(-1, resolution, resolution, resolution).astype(np.float32)).contiguous()
     if use_cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{os.getpid()}")
-        torch.save(vol, tmp)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            torch.save(vol, tmp)
     return vol
 
 

@@ -12,13 +12,13 @@ fps renders one pose from changing cameras (posed Gaussians cached). PSNR is ove
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 from framework.evaluation.run_cost import model_bytes, render_fps
 from framework.model.pruning import (
@@ -216,10 +216,8 @@ def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path) -> 
         densifier_state={},
         splatrig_stage=source.get("splatrig_stage", {}),
     )
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f"{out_path.name}.{os.getpid()}.tmp")
-    torch.save(ckpt, tmp)
-    os.replace(tmp, out_path)
+    with atomic_path(out_path) as tmp:
+        torch.save(ckpt, tmp)
 
 
 def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, *,

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from framework.atomic import atomic_write_text
 from framework.errors import SplatrigError
 
 PROFILE_VERSION = 2
@@ -379,13 +380,10 @@ def profile_body(body_node: Any, dataset):
 
 
 def save_profile(profile: SceneProfile, path: Path) -> None:
-    """Write the profile as YAML (atomically: a tmp file, then os.replace)."""
+    """Write the profile as YAML (atomically, framework.atomic)."""
     import yaml
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(yaml.safe_dump(profile.to_dict(), sort_keys=False))
-    os.replace(tmp, path)
+    atomic_write_text(path, yaml.safe_dump(profile.to_dict(), sort_keys=False))
 
 
 def load_profile(path: Path) -> SceneProfile:
