@@ -161,6 +161,7 @@ def test_joint_names_and_pose_input_choice(body: SMPLXBody):
         pose_input_indices("hands", names)
 
 
+@pytest.mark.slow  # ~65 s on 2 cores: a whole SMPL-X avatar built and stepped; `pytest -m slow` runs it
 def test_avatar_feeds_the_corrector_only_the_pose_input_joints(body: SMPLXBody):
     from framework.model.avatar import Avatar, GaussianParams
     from framework.model.gaussian_init import from_body_surface
