@@ -107,10 +107,11 @@ def test_baked_weights_reproduce_the_trained_render(body):
     torch.testing.assert_close(after, before, atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_inactive_sh_bands_are_skipped_without_changing_render_or_gradients(body, degree):
-    """Below the full SH degree the avatar poses only the active bands; the reference poses all of them (rotating the
-    inactive ones too) and lets the rasterizer ignore them: same image, same gradient for every parameter."""
+    """Below the full SH degree the avatar poses only the active bands, and for one camera it evaluates the colour at
+    R^T d instead of rotating the coefficients; the reference poses all 16 coefficients (rotating every band) and lets
+    the rasterizer evaluate them: same image, same gradient for every parameter."""
     g = from_body_surface(body, num=300, sh_degree=3, seed=0, opacity=0.6)
     g.sh[:, 1:] = 0.3 * torch.randn_like(g.sh[:, 1:])
     corr = CORRECTORS.build("latent", all_sh=True)

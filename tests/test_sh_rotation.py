@@ -72,3 +72,19 @@ def test_gradients_in_coefficients_and_rotation():
     sh = torch.randn(3, 16, 3, dtype=D64, requires_grad=True)
     aa = torch.randn(3, 3, dtype=D64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda s, a: rotate_sh(s, axis_angle_to_rotmat(a)), (sh, aa), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_colour_in_frames_and_its_dc_encoding_match_the_rotated_coefficients(degree):
+    """The renderer's deferred path: eval in per-Gaussian frames, then as a DC coefficient rendered at degree 0."""
+    from framework.splat.sh import eval_sh_in_frames, view_colour_dc
+
+    g = torch.Generator().manual_seed(7 + degree)
+    sh = torch.randn(256, 16, 3, generator=g, dtype=D64)
+    R = random_rotations(256, 20 + degree)
+    d = torch.randn(256, 3, generator=g, dtype=D64) * 4.0  # raw, unnormalised mean - camera vectors
+    want = eval_sh(degree, rotate_sh(sh[:, : (degree + 1) ** 2], R), d)
+    assert (eval_sh_in_frames(degree, sh, d, R) - want).abs().max() < 1e-10
+    dc = view_colour_dc(degree, sh, d, R)  # [N, 1, 3]
+    assert dc.shape == (256, 1, 3)
+    assert (eval_sh(0, dc, d) - want).abs().max() < 1e-10

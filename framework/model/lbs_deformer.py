@@ -1,6 +1,6 @@
 """The LBS deformer shared by the `lbs` and `lbs_residual` plugins: weights from the blend-weight field (or baked per
-Gaussian), the L_w sampling points, then `framework.rig.lbs.apply_lbs`. It holds state (the bound field), so it lives
-with the model rather than with the stateless rig math."""
+Gaussian), the L_w sampling points, then `framework.rig.lbs` (the SH rotation deferred to the renderer on request).
+It holds state (the bound field), so it lives with the model rather than with the stateless rig math."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
-from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, apply_lbs, six_points, weight_std
+from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
+from framework.rig.sh_rotation import rotate_sh
 from framework.rig.weight_field import WeightField
 from framework.types import Gaussians
 
@@ -67,7 +68,7 @@ class LBSDeformerBase(Deformer):
         """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference."""
         return self.weights(gaussians.means).detach().clone()
 
-    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None) -> DeformOutput:
+    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None, defer_sh: bool = False) -> DeformOutput:
         if bone_transforms is None:
             raise ValueError(f"deformer '{self.registry_name}' needs bone_transforms [J, 4, 4]; got None.")
         aux: dict[str, Tensor] = {}
@@ -82,5 +83,9 @@ class LBSDeformerBase(Deformer):
             aux["weight_std"] = weight_std(w7[:, 1:])
         else:
             w = self.weights(gaussians.means)  # [N, J]
-        posed = apply_lbs(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
-        return DeformOutput(posed=posed, weights=w, aux=aux)
+        posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
+        if posed.sh.shape[1] == 1:  # degree 0 does not turn
+            return DeformOutput(posed=posed, weights=w, aux=aux)
+        if defer_sh:
+            return DeformOutput(posed=posed, weights=w, aux=aux, sh_frames=R)
+        return DeformOutput(posed=posed.replace(sh=rotate_sh(posed.sh, R)), weights=w, aux=aux)

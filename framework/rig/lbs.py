@@ -11,6 +11,9 @@ wrapper"). Decisions:
   own frame, k_l = a_l^T S_i a_l (a_l = its l-th axis). This is the "scale" part of P_i; the off-diagonal (shear)
   part is dropped, as the paper does. stretch="none" keeps the canonical scales (rotation + translation only).
 - SH degrees >= 1 are rotated by R_i (`framework.rig.sh_rotation`), so view-dependent colour turns with the body.
+  `lbs_with_sh_frames` instead leaves the coefficients canonical and returns R_i: a renderer of one camera then
+  evaluates the colour at R_i^T d (`framework.splat.sh.eval_sh_in_frames`), which is the same colour
+  (eval(rotate_sh(c, R), d) = eval(c, R^T d)) without rotating 15 coefficients per Gaussian.
 """
 
 from __future__ import annotations
@@ -49,11 +52,24 @@ def apply_lbs(
     polar_dtype: torch.dtype | None = None,
     centres: str = "blended",
 ) -> Gaussians:
-    """Pose canonical Gaussians with blend weights [N, J] and rest-to-posed transforms [J, 4, 4].
+    """Pose canonical Gaussians with blend weights [N, J] and rest-to-posed transforms [J, 4, 4], SH rotated.
 
     `polar_dtype`: the least precision of the polar decomposition's iteration (float64 inputs always iterate in float64;
     default: the inputs' dtype; see framework.rig.polar). `centres`: blended moves centres by A x + t (exact LBS),
     rigid by R x + t (the paper's eq. 4)."""
+    posed, R = lbs_with_sh_frames(gaussians, weights, transforms, stretch, polar_dtype, centres)
+    return posed.replace(sh=rotate_sh(posed.sh, R))
+
+
+def lbs_with_sh_frames(
+    gaussians: Gaussians,
+    weights: Tensor,
+    transforms: Tensor,
+    stretch: str = "diag",
+    polar_dtype: torch.dtype | None = None,
+    centres: str = "blended",
+) -> tuple[Gaussians, Tensor]:
+    """`apply_lbs` without the SH rotation: (posed Gaussians whose SH is still canonical, R [N, 3, 3])."""
     if stretch not in STRETCH_MODES:
         raise ValueError(f"lbs: stretch must be one of {STRETCH_MODES}, got '{stretch}'.")
     if centres not in CENTRE_MODES:
@@ -69,7 +85,7 @@ def apply_lbs(
         Q = quat_to_rotmat(gaussians.quats)  # [N, 3, 3], columns = the Gaussian's axes
         k = ((S @ Q) * Q).sum(-2)  # [N, 3] = a_l^T S a_l
         log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH))
-    return gaussians.replace(means=means, quats=quats, log_scales=log_scales, sh=rotate_sh(gaussians.sh, R))
+    return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R
 
 
 def six_points(gaussians: Gaussians) -> Tensor:

@@ -13,5 +13,7 @@ from framework.types import Gaussians
 class IdentityDeformer(Deformer):
     """Returns the Gaussians unchanged (no weights, no aux); bone transforms, if any, are ignored."""
 
-    def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None = None) -> DeformOutput:
+    def forward(
+        self, gaussians: Gaussians, bone_transforms: Tensor | None = None, defer_sh: bool = False
+    ) -> DeformOutput:
         return DeformOutput(posed=gaussians, weights=None, aux={})
