@@ -4,6 +4,7 @@ file, or the canonical pose) and, with `animatable=true`, as a package an engine
     python -m framework.export ckpt=<run>/checkpoints/final.ckpt              # <run>/export/canonical.ply
     python -m framework.export ckpt=... pose=novel_pose frame=10               # one posed frame
     python -m framework.export ckpt=... pose=dance.bvh animatable=true         # + <run>/export/dance_animatable/
+    python -m framework.export ckpt=... prune=true    # prune + bake first (framework.prune), export the compact model
 """
 
 from __future__ import annotations
@@ -32,9 +33,16 @@ def main() -> int:
         from framework.formats.splat_ply import write_splat_ply
 
         with reported_as_message():
-            module = load_module(cfg.ckpt)
+            ckpt = str(cfg.ckpt)
+            if cfg.prune:
+                from framework.scene.compact import prune_checkpoint
+
+                report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance)
+                print(report.summary())
+                ckpt = report.out
+            module = load_module(ckpt)
             module.eval()
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "export"
+            out = Path(cfg.out_dir) if cfg.out_dir else Path(ckpt).resolve().parent.parent / "export"
             spec = str(cfg.pose)
             body = module.avatar.body
             if spec == "canonical":

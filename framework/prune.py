@@ -1,7 +1,8 @@
 """`python -m framework.prune ckpt=PATH [out=PATH] [min_weight=...] [sh_tolerance=...]`: a compact model for inference.
 
 Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
-whose colour change is negligible, bakes F_dw into per-Gaussian weights, and prints Gaussians, size, render fps and
+whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when its output
+hardly changes over the training poses (`fold_tolerance`), and prints Gaussians, size, render fps and
 PSNR before and after (`framework.scene.compact`).
 """
 
@@ -30,12 +31,9 @@ def main() -> None:
                 cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
                 max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup),
                 repeats=int(cfg.repeats), device=cfg.device,
+                fold_tolerance=None if cfg.fold_tolerance is None else float(cfg.fold_tolerance),
             )  # fmt: skip
-            print(f"\n{report.table()}\n")
-            print(f"[splatrig] removed {report.removed_gaussians} Gaussians (max blending weight < "
-                  f"{report.min_weight:.4g}); SH band RMS {[round(x, 5) for x in report.sh_band_rms]}; "
-                  f"F_dw {'baked' if report.weights_baked else 'absent'}; device {report.device}")  # fmt: skip
-            print(f"[splatrig] compact model: {report.out}")
+            print(report.summary())
             if cfg.json:
                 Path(cfg.json).write_text(json.dumps(report.to_dict(), indent=1))
 

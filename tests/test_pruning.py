@@ -143,3 +143,50 @@ def test_dropping_empty_sh_bands_leaves_renders_unchanged():
     drop_sh_bands(avatar.gaussians, degree)
     assert avatar.gaussians.params["shN"].shape[1] == 3
     torch.testing.assert_close(_renders(avatar, batches, sh_degree=degree), before, atol=1e-6, rtol=0)
+
+
+def _corrected_avatar(body, pose_weight: float) -> Avatar:
+    """The pruning avatar with the paper's latent corrector; its head and pose input are set so that the correction
+    is non-trivial and depends on the pose as much as `pose_weight` says (0: not at all)."""
+    avatar = _avatar(body, sh_degree=1)
+    corrector = CORRECTORS.build("latent")
+    corrector.bind(body.num_pose_features)
+    gen = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        corrector.head.weight.copy_(0.05 * torch.randn(corrector.head.weight.shape, generator=gen))
+        corrector.head.bias.copy_(0.1 * torch.randn(corrector.head.bias.shape, generator=gen))
+        corrector.pose_in.weight.mul_(pose_weight)
+    avatar.corrector = corrector
+    return avatar.eval()
+
+
+def test_folding_a_pose_independent_corrector_leaves_renders_unchanged():
+    """F_a with no pose input is one constant correction: folded into the Gaussians (latents and MLP gone), every
+    pose renders as before, to float tolerance; the reference is the unfolded avatar's own render."""
+    from framework.model.corrector_fold import fold_corrector
+
+    body = BODIES.build("procedural")
+    avatar, batches = _corrected_avatar(body, pose_weight=0.0), _batches(body)
+    before = _renders(avatar, batches, sh_degree=1)
+    uncorrected = _renders(_avatar(body, sh_degree=1), batches, sh_degree=1)
+    assert (before - uncorrected).abs().max() > 0.02  # the correction shows, so the check below can fail
+    with torch.no_grad():
+        poses = [avatar.bone_transforms(b)[1] for b in batches]
+    fold = fold_corrector(avatar, poses, tolerance=1e-4)
+    assert fold.folded and fold.worst < 1e-5, fold.spread
+    assert "latents" not in avatar.gaussians.params and not any(True for _ in avatar.corrector.parameters())
+    torch.testing.assert_close(_renders(avatar, batches, sh_degree=1), before, atol=2e-5, rtol=0)
+
+
+def test_a_pose_dependent_corrector_is_measured_and_kept():
+    from framework.model.corrector_fold import fold_corrector
+
+    body = BODIES.build("procedural")
+    avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
+    before = _renders(avatar, batches, sh_degree=1)
+    with torch.no_grad():
+        poses = [avatar.bone_transforms(b)[1] for b in batches]
+    fold = fold_corrector(avatar, poses, tolerance=1e-3)
+    assert not fold.folded and fold.worst > 1e-3, fold.spread
+    assert "latents" in avatar.gaussians.params
+    torch.testing.assert_close(_renders(avatar, batches, sh_degree=1), before, atol=0, rtol=0)

@@ -30,7 +30,7 @@ def _profile(**changes) -> SceneProfile:
     values = dict(
         key="k", dataset="d", body="procedural", width=128, height=128, views=9, frames=48,
         joints={"pelvis": 0.0, "spine": 12.0, "hand.L": 1.0, "head": 4.9}, moving_deg=5.0, silhouette_px=1000.0,
-        silhouette_fraction=0.06, silhouette_px_per_view={0: 1000.0}, view_dependence=0.005, pose_dependence=0.002,
+        silhouette_fraction=0.06, silhouette_px_per_view={0: 1000.0}, view_dependence=0.005, pose_dependence=0.0005,
         pose_noise=0.001, skin_offset_px=0.2,
     )  # fmt: skip
     values.update(changes)
@@ -80,7 +80,7 @@ def test_auto_composes_and_every_choice_can_be_overridden():
         cfg = _paper_full_auto()
         done = apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"), override_keys([key]))
         assert [c.overridden for c in done] == [j == i for j in range(len(typed))]
-    assert cfg.corrector.name == "none" and cfg.deformer.name == "lbs" and cfg.gaussians.sh_degree == 0
+    assert cfg.corrector.name == "none" and cfg.deformer.name == "lbs" and cfg.gaussians.sh_degree == 1  # the floor
     assert cfg.deformer.grid_resolution == 64 and "hidden" not in cfg.deformer  # the lbs option, residual keys gone
     # tuning a component's option is not choosing the component
     cfg = _paper_full_auto("deformer.grid_resolution=32")

@@ -6,8 +6,8 @@
 Scenes (synthetic studio, `framework/data/studio.py`):
 - near_static: `data.motion=idle`, a slight nod and arm sway in matte (Lambertian) cloth;
 - walking: the default capture (walk, arm raises, squats, kicks; matte cloth with pose-dependent folds);
-- demanding: `data.look=glossy`, the default motion in cloth with a view-dependent highlight and deep pose-dependent
-  folds (the studio has no loose-garment layer on this branch; this is its strongest pose- and view-dependent look).
+- demanding: `data.look=glossy +data.garment=skirt`, the default motion in cloth with a view-dependent highlight and
+  deep pose-dependent folds, plus a loose skirt that follows the pelvis with lag and swing (not the body's skinning).
 Per scene: two trainings (`+experiment=paper_full` and `+experiment=paper_full +scene=auto`, subprocesses, run folders
 `<out>/<scene>/<variant>`), then in this process, one after the other: the paper_full model measured, the auto model
 pruned (`framework.scene.compact.prune_checkpoint`, which measures before and after). Speed follows
@@ -31,7 +31,7 @@ import yaml
 SCENES: dict[str, list[str]] = {
     "near_static": ["data.motion=idle"],
     "walking": [],
-    "demanding": ["data.look=glossy"],
+    "demanding": ["data.look=glossy", "+data.garment=skirt"],
 }
 VARIANTS: dict[str, list[str]] = {"paper_full": [], "auto": ["+scene=auto"]}
 #: the smoke run: the full commands at 50 steps, no evaluation inside training (the table measures PSNR itself)

@@ -64,7 +64,11 @@ class GaussianParams(nn.Module):
         )
 
     def resize_to(self, state_dict: dict[str, Tensor], prefix: str) -> None:
-        """Give every parameter the shape stored in a checkpoint before it is loaded (densification changes N)."""
+        """Give every parameter the shape stored in a checkpoint before it is loaded (densification changes N); a
+        tensor the checkpoint does not hold (latent codes of a compact model whose corrector was folded) is dropped."""
+        stored_keys = {k[len(f"{prefix}params.") :] for k in state_dict if k.startswith(f"{prefix}params.")}
+        for key in [k for k in self.params if stored_keys and k not in stored_keys]:
+            del self.params[key]
         for key, param in self.params.items():
             stored = state_dict.get(f"{prefix}params.{key}")
             if stored is not None and stored.shape != param.shape:

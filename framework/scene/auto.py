@@ -5,9 +5,10 @@ Rules (thresholds in `conf/scene/auto.yaml`, under `scene.thresholds`):
 - frozen joints: every joint (but the root) whose rotation range over the training frames is at most `moving_deg`
   (`scene.frozen_joints`; they leave F_a's pose input and the LBS sum, see `framework.model.frozen_body`).
 - SH degree: the number of `sh_view_dependence` thresholds the view-dependent colour spread exceeds (0 for matte
-  cloth, 3 only for strongly view-dependent appearance) (`gaussians.sh_degree`).
+  cloth, 3 only for strongly view-dependent appearance), at least `min_sh_degree` (`gaussians.sh_degree`).
 - corrector F_a: switched off (`corrector=none`) when the pose-dependent colour spread is below
-  `corrector_pose_dependence`.
+  `corrector_pose_dependence` (set at the noise floor: F_a measured worth keeping in training even for a near-static
+  capture; pruning folds a corrector whose output hardly varies, `framework.model.corrector_fold`).
 - weight residual F_dw: switched off (`deformer=lbs`) when the body mesh's silhouette sits within
   `weight_residual_skin_offset_px` of the masks (the surface follows the body model's skinning).
 - Gaussian budget: `gaussians_per_silhouette_px` x the mean silhouette area in pixels at the training resolution (the
@@ -61,7 +62,8 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     largest = max((profile.joints[n] for n in still), default=0.0)
     ranges = f"{len(still)} joints with a rotation range <= {largest:.1f}°" if still else "every joint moves"
     sh_levels = [float(x) for x in t["sh_view_dependence"]]
-    degree = sum(profile.view_dependence > x for x in sh_levels)
+    floor = int(t.get("min_sh_degree", 0))
+    degree = max(floor, sum(profile.view_dependence > x for x in sh_levels))
     corrector_need = profile.pose_dependence >= float(t["corrector_pose_dependence"])
     residual_need = profile.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
     num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
@@ -72,7 +74,7 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
             "gaussians.sh_degree",
             degree,
             f"view dependence {profile.view_dependence:.4f}",
-            f"thresholds {sh_levels}: degree {degree}",
+            f"thresholds {sh_levels}, at least {floor}: degree {degree}",
         ),  # fmt: skip
         Choice(
             "corrector",

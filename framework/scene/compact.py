@@ -20,7 +20,8 @@ import torch
 
 from framework.atomic import atomic_path
 from framework.errors import SplatrigError
-from framework.evaluation.run_cost import model_bytes, render_fps
+from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps
+from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
     DEFAULT_SH_TOLERANCE,
@@ -57,6 +58,22 @@ class PruneReport:
     sh_tolerance: float
     weights_baked: bool
     device: str
+    corrector_fold: dict[str, Any] | None = None  # CorrectorFold as a dict: spread per attribute, tolerance, folded
+
+    def summary(self) -> str:
+        """The before/after table and what was removed, baked and folded, as printed by prune and export."""
+        lines = [f"\n{self.table()}\n",
+                 f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
+                 f"< {self.min_weight:.4g}); "
+                 f"SH band RMS {[round(x, 5) for x in self.sh_band_rms]}; "
+                 f"F_dw {'baked' if self.weights_baked else 'absent'}; device {self.device}"]  # fmt: skip
+        if self.corrector_fold is not None:
+            f = self.corrector_fold
+            spread = ", ".join(f"{k} {v:.4f}" for k, v in f["spread"].items())
+            lines.append(f"[splatrig] F_a {'folded into the Gaussians' if f['folded'] else 'kept'}: largest spread "
+                         f"over the training poses {spread} (fold_tolerance {f['tolerance']:g})")  # fmt: skip
+        lines.append(f"[splatrig] compact model: {self.out}")
+        return "\n".join(lines)
 
     def table(self) -> str:
         from framework.plugins import format_table
@@ -170,6 +187,24 @@ def bake_weight_residual(module) -> bool:
     return True
 
 
+def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE) -> CorrectorFold | None:
+    """Fold F_a into the Gaussians when it hardly changes over the training poses (`framework.model.corrector_fold`);
+    the stored config becomes `corrector=none`. None when the avatar has no pose-driven corrector."""
+    from framework.lightning.data import collate_frames
+    from framework.scene.auto import group_option
+
+    avatar = module.avatar
+    if avatar.body is None or not any(True for _ in avatar.corrector.parameters()):
+        return None
+    dataset = dm.train_set
+    items = distinct_frame_items(dataset, limit=len(dataset))
+    poses = (avatar.bone_transforms(collate_frames([dataset[i]]).to(module.device))[1] for i in items)
+    fold = fold_corrector(avatar, poses, tolerance)
+    if fold.folded:
+        module.cfg["corrector"] = group_option("corrector", "none", module.cfg["corrector"])
+    return fold
+
+
 @torch.no_grad()
 def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                  max_frames: int | None = None) -> tuple[int, list[float]]:  # fmt: skip
@@ -223,9 +258,11 @@ def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path) -> 
 def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, *,
                      min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
-                     device: str | None = None) -> PruneReport:  # fmt: skip
+                     device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
+                     ) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
-    measure the model before and after (the written file is loaded back for the "after" numbers)."""
+    measure the model before and after (the written file is loaded back for the "after" numbers). A corrector whose
+    output spreads at most `fold_tolerance` over the training poses is folded into the Gaussians (None: never)."""
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
     if out.resolve() == ckpt_path.resolve():
@@ -239,13 +276,14 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     before = measure_module(module, dm, warmup=warmup, repeats=reps, file_bytes=ckpt_path.stat().st_size) \
         if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
     baked = bake_weight_residual(module)
-    removed, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames)
+    fold = None if fold_tolerance is None else fold_module_corrector(module, dm, fold_tolerance)
+    removed, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames)  # on the folded model
     write_compact_checkpoint(module, source, out)
     compact = load_checkpoint_module(out, device)
     after = measure_module(compact, dm, warmup=warmup, repeats=reps, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
-                       baked, str(device))  # fmt: skip
+                       baked, str(device), None if fold is None else asdict(fold))  # fmt: skip
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
