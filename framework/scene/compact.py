@@ -70,8 +70,9 @@ class PruneReport:
         if self.corrector_fold is not None:
             f = self.corrector_fold
             spread = ", ".join(f"{k} {v:.4f}" for k, v in f["spread"].items())
-            lines.append(f"[splatrig] F_a {'folded into the Gaussians' if f['folded'] else 'kept'}: largest spread "
-                         f"over the training poses {spread} (fold_tolerance {f['tolerance']:g})")  # fmt: skip
+            lines.append(f"[splatrig] F_a {'folded into the Gaussians' if f['folded'] else 'kept'}: training frames "
+                         f"render {f['render_rms']:.5f} RMS apart without it (fold_tolerance {f['tolerance']:.4g}); "
+                         f"largest spread of its output over the training poses: {spread}")  # fmt: skip
         lines.append(f"[splatrig] compact model: {self.out}")
         return "\n".join(lines)
 
@@ -187,9 +188,10 @@ def bake_weight_residual(module) -> bool:
     return True
 
 
-def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE) -> CorrectorFold | None:
-    """Fold F_a into the Gaussians when it hardly changes over the training poses (`framework.model.corrector_fold`);
-    the stored config becomes `corrector=none`. None when the avatar has no pose-driven corrector."""
+def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE, max_frames: int = 12
+                          ) -> CorrectorFold | None:  # fmt: skip
+    """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
+    corrector_fold`); the stored config becomes `corrector=none`. None when there is no pose-driven corrector."""
     from framework.lightning.data import collate_frames
     from framework.scene.auto import group_option
 
@@ -197,9 +199,8 @@ def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE)
     if avatar.body is None or not any(True for _ in avatar.corrector.parameters()):
         return None
     dataset = dm.train_set
-    items = distinct_frame_items(dataset, limit=len(dataset))
-    poses = (avatar.bone_transforms(collate_frames([dataset[i]]).to(module.device))[1] for i in items)
-    fold = fold_corrector(avatar, poses, tolerance)
+    batches = [collate_frames([dataset[i]]).to(module.device) for i in distinct_frame_items(dataset, max_frames)]
+    fold = fold_corrector(avatar, batches, module.sh_degree(module.trained_steps()), tolerance)
     if fold.folded:
         module.cfg["corrector"] = group_option("corrector", "none", module.cfg["corrector"])
     return fold
