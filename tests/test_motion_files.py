@@ -304,3 +304,25 @@ def test_render_entry_point_plays_a_bvh_at_the_video_frame_rate(tiny, tmp_path):
     assert "rendering" in proc.stderr  # the progress bar
     assert sorted(p.name for p in (out / "frames").iterdir()) == [f"{i:05d}.png" for i in range(4)]
     assert (out / "render_wave_fixed.mp4").stat().st_size > 0
+
+
+def test_a_motion_file_drives_a_body_with_frozen_joints_through_its_full_skeleton(tmp_path):
+    """`+scene=auto` may freeze joints; a BVH is then read onto the full skeleton (the poses the frozen body takes),
+    giving the same poses as for the unfrozen body, which the frozen body folds on input."""
+    from types import SimpleNamespace
+
+    from framework.animation.sources import load_motion
+    from framework.model.frozen_body import FrozenJointsBody
+    from framework.plugins import load_plugins
+    from framework.registry import BODIES
+
+    load_plugins()
+    base = BODIES.build("procedural")
+    frozen = FrozenJointsBody(base, ["foot.L", "foot.R", "head"])
+    path = write_bvh(tmp_path / "raise.bvh", [{}, {"LeftArm": (80.0, 0.0, 0.0)}], 0.5)
+    dm = SimpleNamespace(train_set=SimpleNamespace())
+    motion, frames = load_motion(SimpleNamespace(avatar=SimpleNamespace(body=frozen)), dm, str(path))
+    want, _ = load_motion(SimpleNamespace(avatar=SimpleNamespace(body=base)), dm, str(path))
+    assert motion.poses.shape == (2, base.num_joints, 3) and frames == [-1, -1]
+    np.testing.assert_allclose(motion.poses, want.poses, atol=1e-6)
+    assert frozen.input_pose(torch.as_tensor(motion.poses, dtype=torch.float32)).shape == (2, frozen.num_joints, 3)

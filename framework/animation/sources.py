@@ -45,8 +45,9 @@ def load_motion(module, dm, spec: str, fps: float | None = None) -> tuple[Motion
         return Motion(poses, roots, None, spec), frames
     if not path.exists() and not path.suffix:
         raise SplatrigError(f"motion={spec}: neither a split ({', '.join(SPLITS)}) nor an existing motion file.")
-    rig = body_rig(body)
-    motion = read_motion_file(path, rig, body.num_joints, reference_root(dm))
+    # a body with frozen joints takes poses of its full skeleton (body.input_pose folds them), so retarget onto that
+    skeleton = getattr(body, "base_body", body)
+    motion = read_motion_file(path, body_rig(skeleton), skeleton.num_joints, reference_root(dm))
     if fps:
         motion = resample(motion, float(fps))
     return motion, [-1] * motion.num_frames

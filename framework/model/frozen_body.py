@@ -74,10 +74,16 @@ class FrozenJointsBody(BodyModel):
         self.register_buffer("axis_rotations", Q.contiguous(), persistent=False)  # [J', 3, 3]
         self.register_buffer("constant_pose", constant_pose[0], persistent=False)  # [J, 3]
         self._num_input_joints = len(names)
+        self._base = (base,)  # in a tuple: not a submodule, so its buffers stay out of checkpoints
 
     @property
     def num_input_joints(self) -> int:
         return self._num_input_joints
+
+    @property
+    def base_body(self) -> BodyModel:
+        """The full skeleton whose poses `input_pose` takes (motion files are retargeted onto it)."""
+        return self._base[0]
 
     def pose_description(self) -> str:
         return f"{self._base_description} with {len(self.frozen_joints)} frozen joints ({self.num_joints} left)"
