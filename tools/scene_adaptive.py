@@ -60,9 +60,8 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
 
 def measure_scene(scene_dir: Path, warmup: int, repeats: int) -> dict:
     """paper_full measured, auto pruned (measured before and after), one after the other in this process."""
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
-
     from framework.evaluation.run_cost import render_fps
+    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
     module = load_checkpoint_module(full_ckpt, device=_device())
