@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
@@ -153,3 +154,20 @@ def test_prune_entry_point_writes_a_compact_model_that_loads(auto_run, tmp_path)
     # what pruning removed never reached 1/255 in a training view, so held-out renders barely move
     for split, value in before["psnr"].items():
         assert abs(after["psnr"][split] - value) < 0.05
+
+
+def test_export_with_prune_writes_the_compact_model_and_exports_it(auto_run, tmp_path):
+    run, _ = auto_run
+    env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
+    ckpt = run / "checkpoints" / "final.ckpt"
+    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "prune=true", f"out_dir={tmp_path / 'export'}"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    compact = ckpt.with_name("final.pruned.ckpt")
+    assert f"compact model: {compact}" in proc.stdout and "novel-pose fps" in proc.stdout
+    ply = tmp_path / "export" / "canonical.ply"
+    assert ply.is_file()
+    from framework.formats.splat_ply import read_splat_ply
+
+    pruned = torch.load(compact, map_location="cpu", weights_only=False)["state_dict"]
+    assert read_splat_ply(ply).num == pruned["avatar.gaussians.params.means"].shape[0]  # the compact model's Gaussians
