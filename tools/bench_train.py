@@ -67,7 +67,8 @@ ROWS = [
     "pose / FK (pose refiner + body)",
     "corrector F_a",
     "weight lookup + F_dw",
-    "polar + LBS + SH rotation (deformer)",
+    "polar + LBS (+ SH rotation) (deformer)",
+    "view colour (SH at R^T d, one camera)",
     "avatar glue (parameters, activations)",
     "rasterizer forward",
     "loss: l1",
@@ -213,7 +214,9 @@ class Instrument:
         avatar = module.avatar
         avatar.bone_transforms = c.wrap("pose / FK (pose refiner + body)", avatar.bone_transforms)
         c.hook_module("corrector F_a", avatar.corrector)
-        c.hook_module("polar + LBS + SH rotation (deformer)", avatar.deformer)
+        c.hook_module("polar + LBS (+ SH rotation) (deformer)", avatar.deformer)
+        if hasattr(avatar, "_view_colour"):
+            avatar._view_colour = c.wrap("view colour (SH at R^T d, one camera)", avatar._view_colour)
         if hasattr(avatar.deformer, "weights"):
             avatar.deformer.weights = c.wrap("weight lookup + F_dw", avatar.deformer.weights)
         c.hook_module("avatar glue (parameters, activations)", avatar)
