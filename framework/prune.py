@@ -1,9 +1,9 @@
 """`python -m framework.prune ckpt=PATH [out=PATH] [min_weight=...] [sh_tolerance=...]`: a compact model for inference.
 
 Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
-whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when its output
-hardly changes over the training poses (`fold_tolerance`), and prints Gaussians, size, render fps and
-PSNR before and after (`framework.scene.compact`).
+whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when the
+training frames render within `fold_tolerance` RMS colour without it, and prints Gaussians, size, render fps and PSNR
+before and after (`framework.scene.compact`).
 """
 
 from __future__ import annotations

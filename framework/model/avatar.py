@@ -161,7 +161,7 @@ class Avatar(nn.Module):
         With `sh_degree`, the Gaussians carry only the SH coefficients that degree renders, so the corrector and the
         deformer's SH rotation skip the bands the schedule has not switched on yet (they would get zero gradients).
         """
-        canonical, posed, aux, frames = self._pose(batch, sh_degree, defer_sh=False)
+        canonical, posed, aux, _ = self._pose(batch, sh_degree, defer_sh=False)
         return canonical, posed, aux
 
     def _pose(

@@ -7,10 +7,10 @@ into the Gaussians (opacity, scales, rotation, SH), the corrector and the latent
 skips the MLP. The fold is exact where the correction equals its mean; whether it is close enough is decided on what
 matters, the images: the training frames are rendered before and after, and the fold is kept only when the RMS
 colour difference over the pixels the avatar covers is at most `tolerance` (default 1/255, one level of an 8-bit
-image). The spread of the corrected
-attributes over the poses is reported too (RMS over Gaussians, the largest over poses; colour in 0..1 units, opacity
-after the sigmoid, log-scale, rotation angle in radians) to show which attribute the corrector still moves; it is
-not the criterion, because invisible Gaussians can change a lot without changing an image.
+image). The spread of the corrected attributes over the poses is reported too (RMS over Gaussians, the largest over
+poses; colour in 0..1 units, opacity after the sigmoid, log-scale, rotation angle in radians) to show which attribute
+the corrector still moves; it is not the criterion, because invisible Gaussians can change a lot without changing an
+image.
 """
 
 from __future__ import annotations

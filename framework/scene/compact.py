@@ -262,8 +262,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
                      ) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
-    measure the model before and after (the written file is loaded back for the "after" numbers). A corrector whose
-    output spreads at most `fold_tolerance` over the training poses is folded into the Gaussians (None: never)."""
+    measure the model before and after (the written file is loaded back for the "after" numbers). F_a is folded into
+    the Gaussians when the training frames render within `fold_tolerance` RMS colour without it (None: never)."""
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
     if out.resolve() == ckpt_path.resolve():
