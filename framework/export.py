@@ -37,7 +37,8 @@ def main() -> int:
             if cfg.prune:
                 from framework.scene.compact import prune_checkpoint
 
-                report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance)
+                report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,
+                                          prune_tolerance=cfg.prune_tolerance)  # fmt: skip
                 print(report.summary())
                 ckpt = report.out
             module = load_module(ckpt)

@@ -66,6 +66,11 @@ POLAR_SINGULAR_TOL = 1e-6
 """det(A) / (|A|_F / sqrt 3)^3 below this sends a matrix from Higham's Newton iteration (which needs A^-1) to the
 float64 SVD path of `polar_rotation_values(method="newton")`; both give the same values where both apply."""
 
+HIDDEN_OPACITY_LOGIT = -1e4
+"""Opacity logit that hides a Gaussian while a compaction step tries removing it (`framework.model.pruning.
+prune_within_tolerance`): sigmoid(-1e4) is exactly 0 in float32, below the rasterizers' 1/255 alpha cull, so the
+render equals the one without the Gaussian; finite, so a corrector's added logit cannot make inf - inf."""
+
 # -------------------------------------------------------------------------------------------------------- metrics
 PSNR_MSE_FLOOR = 1e-10
 """Floor of the mean squared error in PSNR: identical images score 100 dB instead of inf, so averages over frames

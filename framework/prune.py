@@ -2,8 +2,9 @@
 
 Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
 whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when the
-training frames render within `fold_tolerance` RMS colour without it, and prints Gaussians, size, render fps and PSNR
-before and after (`framework.scene.compact`).
+training frames render within `fold_tolerance` RMS colour without it, removes the faintest Gaussians while they stay
+within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians as `fold_tolerance` allows; then prints
+Gaussians, size, render fps and PSNR before and after (`framework.scene.compact`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ def main() -> None:
                 max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup),
                 repeats=int(cfg.repeats), device=cfg.device,
                 fold_tolerance=None if cfg.fold_tolerance is None else float(cfg.fold_tolerance),
+                prune_tolerance=None if cfg.prune_tolerance is None else float(cfg.prune_tolerance),
             )  # fmt: skip
             print(report.summary())
             if cfg.json:

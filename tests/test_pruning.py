@@ -197,3 +197,96 @@ def test_a_pose_dependent_corrector_is_measured_on_the_renders_and_kept():
     # and a refused fold leaves the avatar exactly as it was
     assert "latents" in avatar.gaussians.params
     torch.testing.assert_close(_renders(avatar, batches, sh_degree=1), before, atol=0, rtol=0)
+
+
+def _covered_rms_by_hand(avatar_a, avatar_b, batches, sh_degree: int) -> float:
+    """RMS colour difference over pixels either avatar covers (alpha >= 1/255), computed here from the renders."""
+    with torch.no_grad():
+        outs = [(avatar_a(b, sh_degree=sh_degree).render, avatar_b(b, sh_degree=sh_degree).render) for b in batches]
+    diff = torch.cat([(a.rgb - b.rgb)[(torch.maximum(a.alpha, b.alpha) >= 1 / 255).squeeze(-1)] for a, b in outs])
+    return float(diff.square().mean().sqrt())
+
+
+def test_a_partial_fold_keeps_the_mlp_on_its_rows_and_the_mean_correction_on_the_others():
+    """Folding F_a for part of the Gaussians: the renders stay within the tolerance (measured here), the rows F_a
+    still corrects get exactly the unfolded corrector's output, the folded rows carry the mean of its output over the
+    poses in their own parameters and get no correction, and the row list survives a state-dict round trip."""
+    from framework.geometry import quat_normalize
+    from framework.model.corrector_fold import fold_corrector
+
+    body = BODIES.build("procedural")
+    avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
+    original = copy.deepcopy(avatar)
+    whole = fold_corrector(copy.deepcopy(avatar), batches, sh_degree=1, tolerance=1.0)
+    assert whole.folded and whole.render_rms > 1e-3  # folding all of it changes the images by this much
+    tolerance = 0.5 * whole.render_rms
+    fold = fold_corrector(avatar, batches, sh_degree=1, tolerance=tolerance, partial=True)
+    n = avatar.gaussians.num
+    rows = avatar.corrector.active_rows
+    assert not fold.folded and 0.05 * n <= fold.folded_gaussians < n and rows.numel() == n - fold.folded_gaussians
+    assert _covered_rms_by_hand(avatar, original, batches, 1) <= tolerance
+    assert abs(_covered_rms_by_hand(avatar, original, batches, 1) - fold.render_rms) < 1e-6
+
+    folded = torch.ones(n, dtype=torch.bool)
+    folded[rows] = False
+    with torch.no_grad():
+        canonical0, canonical = original.gaussians.gaussians(), avatar.gaussians.gaussians()
+        outs0 = [original.corrector(canonical0, original.bone_transforms(b)[1]) for b in batches]
+        for b, out0 in zip(batches, outs0, strict=True):
+            out = avatar.corrector(canonical, avatar.bone_transforms(b)[1])
+            for name in ("opacity_logits", "log_scales", "quats", "sh"):
+                got, ref, canon = getattr(out, name), getattr(out0, name), getattr(canonical, name)
+                torch.testing.assert_close(got[rows], ref[rows], atol=1e-6, rtol=0)  # the MLP, as before
+                torch.testing.assert_close(got[folded], canon[folded], atol=0, rtol=0)  # no correction
+        mean = lambda name: torch.stack([getattr(o, name) for o in outs0]).mean(0)[folded]  # noqa: E731
+        torch.testing.assert_close(canonical.opacity_logits[folded], mean("opacity_logits"), atol=1e-6, rtol=0)
+        torch.testing.assert_close(canonical.log_scales[folded], mean("log_scales"), atol=1e-6, rtol=0)
+        torch.testing.assert_close(canonical.sh[folded], mean("sh"), atol=1e-6, rtol=0)
+        unit = torch.stack([quat_normalize(o.quats) for o in outs0]).mean(0)[folded]
+        torch.testing.assert_close(quat_normalize(canonical.quats[folded]), quat_normalize(unit), atol=1e-6, rtol=0)
+
+    fresh = CORRECTORS.build("latent")
+    fresh.bind(body.num_pose_features)
+    fresh.load_state_dict(avatar.corrector.state_dict())
+    assert torch.equal(fresh.active_rows, rows)
+    old = {k: v for k, v in avatar.corrector.state_dict().items() if k != "active_rows"}  # written before it existed
+    fresh.load_state_dict(old)
+    assert fresh.active_rows.numel() == 0
+
+
+def test_pruning_renumbers_the_rows_of_a_partially_folded_corrector():
+    """Removing Gaussians that never show from a partially folded avatar leaves its renders unchanged: the rows the
+    corrector still corrects follow their Gaussians (without the renumbering they would correct the wrong ones)."""
+    from framework.model.corrector_fold import fold_corrector
+
+    body = BODIES.build("procedural")
+    avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
+    with torch.no_grad():  # two more that never show, early in the rows, so that the rows after them shift
+        avatar.gaussians.params["means"][[3, 7]] = torch.tensor([30.0, 0.0, 0.0])
+    whole = fold_corrector(copy.deepcopy(avatar), batches, sh_degree=1, tolerance=1.0)
+    fold = fold_corrector(avatar, batches, sh_degree=1, tolerance=0.5 * whole.render_rms, partial=True)
+    assert 0 < fold.folded_gaussians < avatar.gaussians.num
+    before = _renders(avatar, batches, sh_degree=1)
+    keep = max_contributions(avatar, batches) > 0
+    assert (~keep).sum() >= 4 and not keep[3] and not keep[7] and int(avatar.corrector.active_rows[-1]) > 7
+    prune_gaussians(avatar.gaussians, keep, avatar.corrector)
+    torch.testing.assert_close(_renders(avatar, batches, sh_degree=1), before, atol=1e-6, rtol=0)
+
+
+def test_pruning_within_a_tolerance_removes_faint_gaussians_and_keeps_the_renders_within_it():
+    from framework.model.pruning import prune_within_tolerance
+    from framework.model.render_check import RenderCheck
+
+    body = BODIES.build("procedural")
+    avatar, batches = _avatar(body), _batches(body)
+    original = copy.deepcopy(avatar)
+    n = avatar.gaussians.num
+    check = RenderCheck.of(avatar, batches, sh_degree=0)
+    weights = max_contributions(avatar, batches)
+    removed = prune_within_tolerance(avatar, check, weights, tolerance=0.01)
+    rms = _covered_rms_by_hand(avatar, original, batches, 0)
+    assert 2 < removed <= 0.9 * n and avatar.gaussians.num == n - removed and 0 < rms <= 0.01
+    # a zero tolerance (bisected to a single Gaussian) removes only what never shows: the renders are the same
+    exact = copy.deepcopy(original)
+    assert prune_within_tolerance(exact, RenderCheck.of(exact, batches, 0), weights, tolerance=0.0, steps=n) >= 2
+    torch.testing.assert_close(_renders(exact, batches), _renders(original, batches), atol=1e-6, rtol=0)

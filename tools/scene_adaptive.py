@@ -26,7 +26,10 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
+# as framework.train: this process measures between trainings, and spinning OpenMP threads would take CPU from them
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import yaml  # noqa: E402
 
 SCENES: dict[str, list[str]] = {
     "near_static": ["data.motion=idle"],
@@ -58,24 +61,53 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
     return json.loads(stats.read_text())
 
 
-def measure_scene(scene_dir: Path, warmup: int, repeats: int) -> dict:
-    """paper_full measured, auto pruned (measured before and after), one after the other in this process."""
-    from framework.evaluation.run_cost import render_fps
+def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int) -> dict:
+    """paper_full measured, auto pruned (measured before and after), one after the other in this process; then the
+    three models' frame rates again, interleaved over `rounds` rounds (medians)."""
     from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
     module = load_checkpoint_module(full_ckpt, device=_device())
     dm = checkpoint_datamodule(module)
-    # untimed: the first frames a process renders run about 2x slower than later ones (measured: the first model of a
-    # comparison came out at half the frame rate of the same-sized ones after it), so warm up before any timing
-    render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats)
     full = measure_module(module, dm, warmup=warmup, repeats=repeats,
                           file_bytes=full_ckpt.stat().st_size)  # fmt: skip
     auto_ckpt = scene_dir / "auto" / "checkpoints" / "final.ckpt"
-    report = prune_checkpoint(auto_ckpt, auto_ckpt.with_name("final.pruned.ckpt"), warmup=warmup, repeats=repeats,
-                              device=_device())  # fmt: skip
-    return {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__,
-            "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold}  # fmt: skip
+    pruned_ckpt = auto_ckpt.with_name("final.pruned.ckpt")
+    report = prune_checkpoint(auto_ckpt, pruned_ckpt, warmup=warmup, repeats=repeats, device=_device())
+    measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
+    fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
+                          rounds)  # fmt: skip
+    for name, (pose_fps, view_fps) in fps.items():
+        measures[name].update(novel_pose_fps=pose_fps, novel_view_fps=view_fps)
+    return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
+            "compaction": {"removed_within_tolerance": report.removed_within_tolerance,
+                           "prune_tolerance": report.prune_tolerance, "render_rms": report.render_rms,
+                           "skin_weights_stored": report.skin_weights_stored}}  # fmt: skip
+
+
+def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int) -> dict[str, tuple[float, float]]:
+    """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
+    (tools/bench_render.py's rules, baked weights). Why interleaved: a shared 2-core VM's speed drifts by 20-50 %
+    over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour later, at 52-67 ms), and
+    timing the models one after the other would turn that drift into a difference between them."""
+    import statistics
+
+    from framework.evaluation.run_cost import render_fps
+    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module
+
+    loaded = {}
+    for name, path in ckpts.items():
+        module = load_checkpoint_module(path, device=_device())
+        module.bake_weights()
+        loaded[name] = (module, checkpoint_datamodule(module))
+    for module, dm in loaded.values():  # untimed: the first frames a process renders run slower
+        render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats)
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
+    for _ in range(rounds):
+        for name, (module, dm) in loaded.items():
+            times[name].append(render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats))
+    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
+            for name, ts in times.items()}  # fmt: skip
 
 
 def _device() -> str:
@@ -105,11 +137,25 @@ def scene_table(name: str, result: dict) -> str:
               "novel-pose dB", "smaller")  # fmt: skip
     choices = "; ".join(f"{c['key']}={_short(c['value'])} ({c['measure']})" for c in result["choices"]
                         if not c["by_hand"])  # fmt: skip
-    fold = result.get("corrector_fold")
+    fold, comp = result.get("corrector_fold"), result.get("compaction") or {}
     pruned = f"pruning removed {result['removed_gaussians']} Gaussians"
+    if comp.get("prune_tolerance") is not None:
+        pruned += f" ({comp['removed_within_tolerance']} of them the faintest, within {comp['prune_tolerance']:.4f})"
     if fold:
-        pruned += (f"; F_a {'folded into the Gaussians' if fold['folded'] else 'kept'} (training frames render "
-                   f"{fold['render_rms']:.4f} RMS apart without it, tolerance {fold['tolerance']:.4f})")  # fmt: skip
+        if fold["folded"]:
+            what = "folded into the Gaussians"
+        elif fold.get("folded_gaussians"):
+            what = f"folded for {fold['folded_gaussians']} of {fold['num_gaussians']} Gaussians"
+        else:
+            what = "kept"
+        pruned += (f"; F_a {what} (training frames render {fold['render_rms']:.4f} RMS apart, tolerance "
+                   f"{fold['tolerance']:.4f})")  # fmt: skip
+    if comp.get("render_rms") is not None:
+        pruned += (
+            f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "
+            f"the trained one; skin weights {'stored' if comp['skin_weights_stored'] else 'rebuilt on loading'}"
+        )
+
     return f"### {name}\n\nauto chose: {choices}\n\n{pruned}\n\n{format_table(rows, header)}\n"
 
 
@@ -128,6 +174,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra overrides for every training")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--rounds", type=int, default=7, help="interleaved rounds of frame-rate timing (medians)")
     args = ap.parse_args()
     extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
     results = {}
@@ -135,10 +182,12 @@ def main() -> None:
         scene_dir = args.out / scene
         train_stats = {v: train(scene_dir / v, [*SCENES[scene], *o, *extra]) for v, o in VARIANTS.items()}
         summary = yaml.safe_load((scene_dir / "auto" / "scene.yaml").read_text())
-        results[scene] = {"train": train_stats, "measures": measure_scene(scene_dir, args.warmup, args.repeats),
-                          "choices": summary["choices"], "profile": summary["profile"]}  # fmt: skip
+        measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds)
+        results[scene] = {"train": train_stats, "measures": measures, "choices": summary["choices"],
+                          "profile": summary["profile"]}  # fmt: skip
         results[scene]["removed_gaussians"] = results[scene]["measures"].pop("removed_gaussians")
         results[scene]["corrector_fold"] = results[scene]["measures"].pop("corrector_fold")
+        results[scene]["compaction"] = results[scene]["measures"].pop("compaction")
         tmp = args.out / "results.json.tmp"
         tmp.write_text(json.dumps(results, indent=1))
         os.replace(tmp, args.out / "results.json")

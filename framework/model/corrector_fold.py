@@ -11,6 +11,12 @@ image). The spread of the corrected attributes over the poses is reported too (R
 poses; colour in 0..1 units, opacity after the sigmoid, log-scale, rotation angle in radians) to show which attribute
 the corrector still moves; it is not the criterion, because invisible Gaussians can change a lot without changing an
 image.
+
+Partial fold: in a walking capture F_a moves some Gaussians (a bending elbow's folds) and hardly touches most others,
+so folding all of it fails the check while folding most of it would not. The Gaussians are ranked by how much their
+correction varies over the training poses, weighted by how visible they are (largest blending weight), and the
+largest prefix of that ranking whose fold keeps the renders within the tolerance is folded (bisection); the MLP then
+runs on the remaining rows only (`MLPCorrector.active_rows`).
 """
 
 from __future__ import annotations
@@ -23,18 +29,24 @@ from torch import Tensor
 
 from framework.geometry import quat_normalize
 from framework.model.avatar import Avatar
+from framework.model.render_check import RenderCheck, largest_passing
 from framework.splat.sh import SH_C0
-from framework.types import FrameBatch, Gaussians, RenderOutput
+from framework.types import FrameBatch, Gaussians
 
 DEFAULT_FOLD_TOLERANCE = 1.0 / 255.0
+PARTIAL_FOLD_STEPS = 64  # the bisection stops at N / 64 Gaussians: ~6 renders of the checked frames
+MIN_PARTIAL_FRACTION = 0.05  # a partial fold of fewer Gaussians is not worth the row bookkeeping
+_KEYS = ("opacity_logits", "log_scales", "quats", "sh0", "shN")
 
 
 @dataclass
 class CorrectorFold:
     spread: dict[str, float]  # largest RMS deviation per attribute over the training poses (units above)
-    render_rms: float  # RMS colour difference of the training frames' renders where the avatar is, folded vs not
+    render_rms: float  # RMS colour difference of the checked frames' renders from the uncompacted model's
     tolerance: float
-    folded: bool
+    folded: bool  # the whole corrector went (its MLP and the latent codes)
+    folded_gaussians: int = 0  # Gaussians whose correction is now in their parameters (all when folded)
+    num_gaussians: int = 0
 
     @property
     def worst(self) -> float:
@@ -50,74 +62,89 @@ def _attributes(g: Gaussians) -> dict[str, Tensor]:
     }
 
 
-def _spread(a: dict[str, Tensor], b: dict[str, Tensor]) -> dict[str, float]:
-    """RMS deviations of corrected attributes `a` from `b`, in render units (module docstring)."""
-    rms = lambda x: float(x.square().mean().sqrt()) if x.numel() else 0.0  # noqa: E731
+def _deviation(a: dict[str, Tensor], b: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Per-Gaussian deviations [N] of corrected attributes `a` from `b`, in render units (module docstring)."""
     # rotation angle between unit quaternions from their chord (acos of the dot product loses ~3e-4 rad in float32)
     sign = torch.where((a["quats"] * b["quats"]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
     chord = (a["quats"] - sign * b["quats"]).norm(dim=-1)
     return {
-        "colour": rms(SH_C0 * (a["sh"][:, 0] - b["sh"][:, 0])),
-        "opacity": rms(torch.sigmoid(a["opacity"]) - torch.sigmoid(b["opacity"])),
-        "scale": rms(a["log_scales"] - b["log_scales"]),
-        "rotation": rms(4.0 * torch.asin((0.5 * chord).clamp(max=1.0))),
+        "colour": (SH_C0 * (a["sh"][:, 0] - b["sh"][:, 0])).square().mean(-1).sqrt(),
+        "opacity": (torch.sigmoid(a["opacity"]) - torch.sigmoid(b["opacity"])).abs(),
+        "scale": (a["log_scales"] - b["log_scales"]).square().mean(-1).sqrt(),
+        "rotation": 4.0 * torch.asin((0.5 * chord).clamp(max=1.0)),
     }
 
 
-def _covered_rms(before: Sequence[RenderOutput], after: Sequence[RenderOutput]) -> float:
-    """RMS colour difference over the pixels the avatar covers (alpha >= 1/255 in either render): over whole images
-    the background would dilute it by the body's share of the frame (~7 % in the studio)."""
-    diffs = []
-    for a, b in zip(after, before, strict=True):
-        covered = (torch.maximum(a.alpha, b.alpha) >= 1.0 / 255.0).squeeze(-1)  # [C, H, W]
-        diffs.append((a.rgb - b.rgb)[covered].reshape(-1))  # [3 * covered pixels]
-    d = torch.cat(diffs)
-    return float(d.square().mean().sqrt()) if d.numel() else 0.0
+def _write_mean(p, mean: dict[str, Tensor], kept: dict[str, Tensor], rows: Tensor | None) -> None:
+    """Parameters = the kept ones, with the mean correction written into `rows` (None: every row)."""
+    new = {"opacity_logits": mean["opacity"], "log_scales": mean["log_scales"], "quats": mean["quats"],
+           "sh0": mean["sh"][:, :1], "shN": mean["sh"][:, 1:]}  # fmt: skip
+    for k in _KEYS:
+        value = new[k] if rows is None else kept[k].index_copy(0, rows, new[k].index_select(0, rows))
+        p[k].data.copy_(value)
 
 
 @torch.no_grad()
 def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int,
-                   tolerance: float = DEFAULT_FOLD_TOLERANCE) -> CorrectorFold:  # fmt: skip
-    """Fold the corrector into the Gaussians when the training frames `batches` render within `tolerance` (RMS
-    colour) of the unfolded avatar: the mean corrected Gaussians replace the canonical ones, the corrector becomes
-    `none` and the latent codes go. Otherwise the avatar is left exactly as it was. The caller updates the stored
-    config (`corrector=none`)."""
+                   tolerance: float = DEFAULT_FOLD_TOLERANCE, check: RenderCheck | None = None,
+                   partial: bool = False) -> CorrectorFold:  # fmt: skip
+    """Fold the corrector into the Gaussians when the frames render within `tolerance` (RMS colour) of `check`'s
+    reference (default: the avatar's own renders of `batches` now): the mean corrected Gaussians replace the canonical
+    ones, the corrector becomes `none` and the latent codes go. Otherwise, with `partial`, fold the largest share of
+    the Gaussians that stays within the tolerance (the MLP keeps the rest), or leave the avatar exactly as it was.
+    The caller updates the stored config (`corrector=none`) when `folded`."""
+    n = avatar.gaussians.num
     if not batches:
-        return CorrectorFold({}, 0.0, tolerance, False)
+        return CorrectorFold({}, 0.0, tolerance, False, 0, n)
+    check = check or RenderCheck.of(avatar, batches, sh_degree)
     canonical = avatar.gaussians.gaussians()
     corrected = [_attributes(avatar.corrector(canonical, avatar.bone_transforms(b)[1])) for b in batches]
     mean = {k: torch.stack([c[k] for c in corrected]).mean(0) for k in corrected[0]}
     mean["quats"] = quat_normalize(mean["quats"])  # corrections are small rotations: the chordal mean is fine
     spread: dict[str, float] = {}
+    variation = torch.zeros(n, device=canonical.means.device)  # [N] the largest deviation over poses, summed
     for c in corrected:
-        for k, v in _spread(c, mean).items():
-            spread[k] = max(spread.get(k, 0.0), v)
-    before = [avatar(b, sh_degree=sh_degree).render for b in batches]
+        dev = _deviation(c, mean)
+        for k, v in dev.items():
+            spread[k] = max(spread.get(k, 0.0), float(v.square().mean().sqrt()) if v.numel() else 0.0)
+        variation = torch.maximum(variation, sum(dev.values()))
 
     from framework.plugins import load_plugins
     from framework.registry import CORRECTORS
 
     load_plugins()
     p = avatar.gaussians.params
-    keys = ("opacity_logits", "log_scales", "quats", "sh0", "shN")
-    kept = {k: p[k].detach().clone() for k in keys}
+    kept = {k: p[k].detach().clone() for k in _KEYS}
     corrector, latents = avatar.corrector, p["latents"] if "latents" in p else None
-    p["opacity_logits"].data.copy_(mean["opacity"])
-    p["log_scales"].data.copy_(mean["log_scales"])
-    p["quats"].data.copy_(mean["quats"])
-    p["sh0"].data.copy_(mean["sh"][:, :1])
-    p["shN"].data.copy_(mean["sh"][:, 1:])
+    _write_mean(p, mean, kept, None)
     avatar.corrector = CORRECTORS.build("none")
-    avatar._posed_cache = None
-    after = [avatar(b, sh_degree=sh_degree).render for b in batches]
-    rms = _covered_rms(before, after)
-    fold = CorrectorFold(spread, rms, float(tolerance), rms <= tolerance)
-    if fold.folded:
+    rms = check.rms(avatar)
+    if rms <= tolerance:
         if latents is not None:
             del p["latents"]
-        return fold
-    for k in keys:  # not close enough: put everything back
-        p[k].data.copy_(kept[k])
-    avatar.corrector = corrector
+        return CorrectorFold(spread, rms, float(tolerance), True, n, n)
+    avatar.corrector = corrector  # not close enough: put everything back, then try a part
+    _restore(p, kept)
+    if partial and hasattr(corrector, "active_rows") and not corrector.active_rows.numel() and n > 1:
+        from framework.model.pruning import max_contributions
+
+        order = torch.argsort(variation * max_contributions(avatar, batches))  # least needed first
+
+        def fold_first(k: int) -> float:  # k < n: an empty active_rows would mean "every row"
+            _write_mean(p, mean, kept, order[:k])
+            corrector.active_rows = torch.sort(order[k:]).values
+            return check.rms(avatar)
+
+        step = max(1, n // PARTIAL_FOLD_STEPS)
+        k = largest_passing(n - 1, lambda k: fold_first(k) <= tolerance, resolution=step)
+        if k >= MIN_PARTIAL_FRACTION * n:
+            return CorrectorFold(spread, fold_first(k), float(tolerance), False, k, n)
+        _restore(p, kept)
+        corrector.active_rows = corrector.active_rows.new_zeros(0)
     avatar._posed_cache = None
-    return fold
+    return CorrectorFold(spread, rms, float(tolerance), False, 0, n)
+
+
+def _restore(p, kept: dict[str, Tensor]) -> None:
+    for k in _KEYS:
+        p[k].data.copy_(kept[k])

@@ -4,6 +4,11 @@ F_a maps [pose, per-Gaussian feature] to residuals (d_alpha, d_s, d_r, d_SH). Th
 of a frame, so the first layer is split: W [pose, f] = W_p pose + W_f f, and W_p pose (one vector) is computed once
 and broadcast instead of concatenating an [N, P] copy of the pose. The last layer starts at zero, so a freshly
 switched-on corrector is exactly the identity and stage 2 starts from the stage-1 solution.
+
+`active_rows` (empty: every Gaussian) restricts the MLP to the Gaussians whose correction still depends on the pose;
+the others carry their (constant) correction in their own parameters and get none here. It is set by a partial fold
+(`framework.model.corrector_fold`) of a compact model and saved with the weights, so a novel pose pays for the MLP on
+those rows only.
 """
 
 from __future__ import annotations
@@ -33,6 +38,21 @@ class MLPCorrector(Corrector):
         self.feature_in: nn.Linear | None = None
         self.trunk: nn.Sequential | None = None
         self.head: nn.Linear | None = None
+        self.register_buffer("active_rows", torch.zeros(0, dtype=torch.long))  # [M] (empty: all rows)
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs) -> None:  # fmt: skip
+        """A stored `active_rows` may have any length; checkpoints written before it existed have none (all rows)."""
+        key = prefix + "active_rows"
+        if key in state_dict:
+            self.active_rows = torch.empty_like(state_dict[key], device=self.active_rows.device)
+        else:
+            self.active_rows = self.active_rows.new_zeros(0)
+        first = len(missing_keys)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)  # fmt: skip
+        if key in missing_keys[first:]:
+            missing_keys.remove(key)
 
     @property
     def num_sh_out(self) -> int:
@@ -71,9 +91,21 @@ class MLPCorrector(Corrector):
                 f"with {self.num_pose_features}; bind it to the body the poses come from."
             )
         f = self.features(gaussians)  # [N, F]
-        h = self.feature_in(f) + self.pose_in(pose.to(f.dtype))  # [N, H] + [H]
+        rows = self.active_rows
+        if rows.numel():
+            if int(rows[-1]) >= f.shape[0]:
+                raise ValueError(
+                    f"corrector '{self.registry_name}': it corrects Gaussian rows up to {int(rows[-1])} but got "
+                    f"{f.shape[0]} Gaussians; a partially folded corrector belongs to the Gaussians it was folded "
+                    "with (prune the model before folding, not after)."
+                )
+            f = f.index_select(0, rows)  # [M, F]
+        h = self.feature_in(f) + self.pose_in(pose.to(f.dtype))  # [M, H] + [H]
         h = self.trunk(torch.relu(h))
-        return self.head(h)  # [N, out]
+        out = self.head(h)  # [M, out]
+        if not rows.numel():
+            return out
+        return out.new_zeros(gaussians.num, out.shape[1]).index_copy(0, rows, out)  # [N, out], 0 where folded
 
     def forward(self, gaussians: Gaussians, pose: Tensor) -> Gaussians:
         if not self.enabled:

@@ -6,6 +6,10 @@ one whose largest weight over every training view and pose stays below a thresho
 8-bit image even on a white background) can go. The weights come from the rasterizer's `max_blend_weights`, a pass
 outside the training step (`torch_ref` has one; other backends fall back to it).
 
+Beyond the threshold, `prune_within_tolerance` removes the Gaussians with the smallest largest weight while the
+training frames still render within a tolerance of the unpruned model (`framework.model.render_check`): densification
+leaves many small, faint Gaussians whose sum matters little, and the images, not a fixed weight, decide how many.
+
 SH bands: band l of a Gaussian changes its colour by an amount whose root mean square over all view directions is
 sqrt(sum_m c_lm^2 / 4 pi) per channel (real SH are orthonormal on the sphere). Bands are dropped from the top while
 that RMS, averaged over Gaussians, stays below a tolerance in colour units (default 1/255).
@@ -19,9 +23,11 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from framework.guards import HIDDEN_OPACITY_LOGIT
 from framework.interfaces.rasterizer import Rasterizer
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.optim_surgery import keep_rows, update_params
+from framework.model.render_check import RenderCheck, largest_passing
 from framework.types import FrameBatch
 
 DEFAULT_MIN_WEIGHT = 1.0 / 255.0
@@ -57,11 +63,43 @@ def max_contributions(avatar: Avatar, batches: Iterable[FrameBatch], rasterizer:
     return best
 
 
-def prune_gaussians(params: GaussianParams, keep: Tensor) -> int:
-    """Keep the Gaussians selected by the bool mask `keep` [N]; returns how many were removed."""
+def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: torch.nn.Module | None = None) -> int:
+    """Keep the Gaussians selected by the bool mask `keep` [N]; returns how many were removed. A partially folded
+    `corrector`'s rows (`MLPCorrector.active_rows`) are renumbered to the kept Gaussians."""
     before = params.num
     keep_rows(params.params, None, keep)
+    rows = getattr(corrector, "active_rows", None)
+    if rows is not None and rows.numel():
+        new_index = torch.cumsum(keep.long(), 0) - 1  # [N] row of each kept Gaussian after the removal
+        corrector.active_rows = new_index[rows[keep[rows]]]
+        if not corrector.active_rows.numel():  # every corrected Gaussian went: nothing is pose-dependent any more
+            raise ValueError("pruning removed every Gaussian the partially folded corrector corrects; fold it whole.")
     return before - params.num
+
+
+@torch.no_grad()
+def prune_within_tolerance(avatar: Avatar, check: RenderCheck, weights: Tensor, tolerance: float,
+                           max_fraction: float = 0.9, steps: int = 64) -> int:  # fmt: skip
+    """Remove the Gaussians with the smallest largest blending weight `weights` [N], as many as keep `check`'s frames
+    within `tolerance` RMS colour of its reference, at most `max_fraction` of them. Bisection over the count (to N /
+    `steps`); a trial hides Gaussians (`HIDDEN_OPACITY_LOGIT`), which renders as their removal. Returns how many
+    were removed."""
+    n = avatar.gaussians.num
+    order = torch.argsort(weights)  # [N] least visible first
+    logits = avatar.gaussians.params["opacity_logits"]
+    kept = logits.detach().clone()
+
+    def hide_first(k: int) -> bool:
+        logits.data.copy_(kept)
+        logits.data[order[:k]] = HIDDEN_OPACITY_LOGIT
+        return check.rms(avatar) <= tolerance
+
+    k = largest_passing(int(max_fraction * n), hide_first, resolution=max(1, n // steps))
+    logits.data.copy_(kept)
+    avatar._posed_cache = None
+    keep = torch.ones(n, dtype=torch.bool, device=logits.device)
+    keep[order[:k]] = False
+    return prune_gaussians(avatar.gaussians, keep, avatar.corrector)
 
 
 def sh_band_rms(shN: Tensor) -> list[float]:

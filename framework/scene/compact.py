@@ -29,8 +29,15 @@ from framework.model.pruning import (
     max_contributions,
     negligible_sh_degree,
     prune_gaussians,
+    prune_within_tolerance,
     sh_band_rms,
 )
+from framework.model.render_check import RenderCheck
+
+DEFAULT_PRUNE_TOLERANCE = 0.7 * DEFAULT_FOLD_TOLERANCE
+"""RMS colour (over the avatar's pixels of the checked training frames) that removing faint Gaussians may reach; the
+rest of the fold tolerance is left to a partial F_a fold, checked after it against the same original renders."""
+CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
 
 
 @dataclass
@@ -59,20 +66,38 @@ class PruneReport:
     weights_baked: bool
     device: str
     corrector_fold: dict[str, Any] | None = None  # CorrectorFold as a dict: spread per attribute, tolerance, folded
+    prune_tolerance: float | None = None  # faint Gaussians removed while the checked frames stay within it
+    removed_within_tolerance: int = 0  # of removed_gaussians, those beyond the min_weight threshold
+    render_rms: float | None = None  # the compact model's checked training frames against the original's
+    skin_weights_stored: bool = True  # False: the weights are the body's field at the means, rebuilt on loading
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
+        faint = (f", {self.removed_within_tolerance} of them the faintest while the training frames stayed within "
+                 f"{self.prune_tolerance:.4g} RMS") if self.prune_tolerance is not None else ""  # fmt: skip
         lines = [f"\n{self.table()}\n",
                  f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
-                 f"< {self.min_weight:.4g}); "
+                 f"< {self.min_weight:.4g}{faint}); "
                  f"SH band RMS {[round(x, 5) for x in self.sh_band_rms]}; "
-                 f"F_dw {'baked' if self.weights_baked else 'absent'}; device {self.device}"]  # fmt: skip
+                 f"F_dw {'baked' if self.weights_baked else 'absent'}; skin weights "
+                 f"{'stored' if self.skin_weights_stored else 'rebuilt from the body on loading'}; "
+                 f"device {self.device}"]  # fmt: skip
         if self.corrector_fold is not None:
             f = self.corrector_fold
             spread = ", ".join(f"{k} {v:.4f}" for k, v in f["spread"].items())
-            lines.append(f"[splatrig] F_a {'folded into the Gaussians' if f['folded'] else 'kept'}: training frames "
-                         f"render {f['render_rms']:.5f} RMS apart without it (fold_tolerance {f['tolerance']:.4g}); "
+            if f["folded"]:
+                what = "folded into the Gaussians"
+            elif f.get("folded_gaussians"):
+                what = (f"folded for {f['folded_gaussians']} of {f['num_gaussians']} Gaussians "
+                        "(the MLP runs on the rest)")  # fmt: skip
+            else:
+                what = "kept"
+            lines.append(f"[splatrig] F_a {what}: training frames render {f['render_rms']:.5f} RMS apart "
+                         f"(fold_tolerance {f['tolerance']:.4g}); "
                          f"largest spread of its output over the training poses: {spread}")  # fmt: skip
+        if self.render_rms is not None:
+            lines.append(f"[splatrig] the compact model renders the checked training frames {self.render_rms:.5f} "
+                         "RMS (over the avatar's pixels) from the original")  # fmt: skip
         lines.append(f"[splatrig] compact model: {self.out}")
         return "\n".join(lines)
 
@@ -145,6 +170,8 @@ def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_p
 
     load_plugins()
     module.eval()
+    size = model_bytes(module)  # as stored: weights a compact model rebuilds on loading are not counted
+    module.bake_weights()  # as tools/bench_render.py: the real-time path uses baked weights
     device = module.device
     psnr_metric = METRICS.build("psnr")
     psnr: dict[str, float] = {}
@@ -166,7 +193,7 @@ def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_p
     return ModelMeasure(
         num_gaussians=module.avatar.gaussians.num,
         sh_degree=module.sh_degree(module.trained_steps()),
-        model_bytes=model_bytes(module),
+        model_bytes=size,
         file_bytes=file_bytes,
         novel_pose_fps=pose_fps,
         novel_view_fps=view_fps,
@@ -188,19 +215,27 @@ def bake_weight_residual(module) -> bool:
     return True
 
 
-def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE, max_frames: int = 12
-                          ) -> CorrectorFold | None:  # fmt: skip
-    """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
-    corrector_fold`); the stored config becomes `corrector=none`. None when there is no pose-driven corrector."""
+def check_batches(module, dm, max_frames: int = CHECK_FRAMES) -> list:
+    """The training frames (one view each, spread over the split) that image-checked compaction steps render."""
     from framework.lightning.data import collate_frames
+
+    dataset = dm.train_set
+    return [collate_frames([dataset[i]]).to(module.device) for i in distinct_frame_items(dataset, max_frames)]
+
+
+def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE, max_frames: int = CHECK_FRAMES,
+                          check: RenderCheck | None = None, partial: bool = False) -> CorrectorFold | None:  # fmt: skip
+    """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
+    corrector_fold`; with `partial`, as much of it as they allow); the stored config becomes `corrector=none` when
+    all of it went. None when there is no pose-driven corrector."""
     from framework.scene.auto import group_option
 
     avatar = module.avatar
     if avatar.body is None or not any(True for _ in avatar.corrector.parameters()):
         return None
-    dataset = dm.train_set
-    batches = [collate_frames([dataset[i]]).to(module.device) for i in distinct_frame_items(dataset, max_frames)]
-    fold = fold_corrector(avatar, batches, module.sh_degree(module.trained_steps()), tolerance)
+    batches = check.batches if check is not None else check_batches(module, dm, max_frames)
+    sh_degree = check.sh_degree if check is not None else module.sh_degree(module.trained_steps())
+    fold = fold_corrector(avatar, batches, sh_degree, tolerance, check=check, partial=partial)
     if fold.folded:
         module.cfg["corrector"] = group_option("corrector", "none", module.cfg["corrector"])
     return fold
@@ -208,9 +243,11 @@ def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE,
 
 @torch.no_grad()
 def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
-                 max_frames: int | None = None) -> tuple[int, list[float]]:  # fmt: skip
-    """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses, then the
-    SH bands whose RMS colour change is below `sh_tolerance`. Returns (Gaussians removed, band RMS before)."""
+                 max_frames: int | None = None, check: RenderCheck | None = None,
+                 tolerance: float | None = None) -> tuple[int, int, list[float]]:  # fmt: skip
+    """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses; with a
+    `check` and `tolerance`, then the faintest others while the checked frames stay within it; then the SH bands whose
+    RMS colour change is below `sh_tolerance`. Returns (Gaussians removed, of them within the tolerance, band RMS)."""
     from framework.lightning.data import collate_frames
 
     dataset = dm.train_set
@@ -226,9 +263,14 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
                 continue
             yield collate_frames([dataset[i]]).to(module.device)
 
-    weights = max_contributions(module.avatar, batches())
-    removed = prune_gaussians(module.avatar.gaussians, weights >= min_weight)
-    params = module.avatar.gaussians
+    avatar = module.avatar
+    weights = max_contributions(avatar, batches())
+    visible = weights >= min_weight
+    removed = prune_gaussians(avatar.gaussians, visible, avatar.corrector)
+    faint = 0
+    if check is not None and tolerance is not None:
+        faint = prune_within_tolerance(avatar, check, weights[visible], tolerance)
+    params = avatar.gaussians
     rms = sh_band_rms(params.params["shN"])
     corrector_cfg = module.cfg.get("corrector") or {}
     floor = int(corrector_cfg.get("sh_degree", 3)) if corrector_cfg.get("all_sh") else 0
@@ -237,17 +279,39 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
     if degree < current:
         drop_sh_bands(params, degree)
         module.cfg["gaussians"]["sh_degree"] = degree
-    return removed, rms
+        if check is not None:
+            check.sh_degree = degree
+    return removed + faint, faint, rms
 
 
-def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path) -> None:
-    """The module as a checkpoint for inference: weights, updated config, step count; no optimizer state."""
+def rebuildable_skin_weights(module) -> bool:
+    """True when the stored blend weights are the body's weight field at the canonical means (no F_dw residual in
+    them), so a loaded model rebuilds them exactly (`deformer=lbs` binds the field; `bake_weights` samples it)."""
+    avatar = module.avatar
+    params = avatar.gaussians.params
+    weights = params["skin_weights"] if "skin_weights" in params else None
+    deformer = avatar.deformer
+    if weights is None or getattr(deformer, "mlp", None) is not None or not hasattr(deformer, "weights"):
+        return False
+    if getattr(deformer, "field", None) is None:
+        return False
+    with torch.no_grad():
+        field = deformer.weights(params["means"])
+    return torch.allclose(field, weights.detach(), rtol=0.0, atol=1e-6)  # the same lookup: equal to float rounding
+
+
+def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path, skin_weights: bool = True) -> None:
+    """The module as a checkpoint for inference: weights, updated config, step count; no optimizer state. Without
+    `skin_weights`, the baked blend weights are left out (only when `rebuildable_skin_weights`)."""
+    state = {k: v.detach().cpu() for k, v in module.state_dict().items()}
+    if not skin_weights:
+        state.pop("avatar.gaussians.params.skin_weights", None)
     hparams = dict(source.get("hyper_parameters", {}))
     hparams["cfg"] = module.cfg
     kept = ("epoch", "global_step", "pytorch-lightning_version", "hparams_name")
     ckpt = {key: source[key] for key in kept if key in source}
     ckpt.update(
-        state_dict={k: v.detach().cpu() for k, v in module.state_dict().items()},
+        state_dict=state,
         hyper_parameters=hparams,
         densifier_state={},
         splatrig_stage=source.get("splatrig_stage", {}),
@@ -260,10 +324,15 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
                      device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
-                     ) -> PruneReport:  # fmt: skip
+                     prune_tolerance: float | None = DEFAULT_PRUNE_TOLERANCE) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
-    measure the model before and after (the written file is loaded back for the "after" numbers). F_a is folded into
-    the Gaussians when the training frames render within `fold_tolerance` RMS colour without it (None: never)."""
+    measure the model before and after (the written file is loaded back for the "after" numbers).
+
+    In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
+    F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
+    reach `min_weight` removed, then the faintest others while the frames stay within `prune_tolerance`; negligible
+    SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`.
+    None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
     if out.resolve() == ckpt_path.resolve():
@@ -272,19 +341,27 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     module = load_checkpoint_module(ckpt_path, device)
     dm = checkpoint_datamodule(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    module.bake_weights()  # as tools/bench_render.py: the real-time path uses baked weights, before and after
     reps = repeats if measure else 0
     before = measure_module(module, dm, warmup=warmup, repeats=reps, file_bytes=ckpt_path.stat().st_size) \
         if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
+    module.bake_weights()
     baked = bake_weight_residual(module)
-    fold = None if fold_tolerance is None else fold_module_corrector(module, dm, fold_tolerance)
-    removed, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames)  # on the folded model
-    write_compact_checkpoint(module, source, out)
+    check = RenderCheck.of(module.avatar, check_batches(module, dm), module.sh_degree(module.trained_steps()))
+    fold = None if fold_tolerance is None else fold_module_corrector(module, dm, fold_tolerance, check=check)
+    removed, faint, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames, check=check,
+                                       tolerance=prune_tolerance)  # on the folded model  # fmt: skip
+    if fold is not None and not fold.folded:
+        fold = fold_module_corrector(module, dm, fold_tolerance, check=check, partial=True)
+    render_rms = check.rms(module.avatar)
+    skin_weights = not rebuildable_skin_weights(module)
+    write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     compact = load_checkpoint_module(out, device)
     after = measure_module(compact, dm, warmup=warmup, repeats=reps, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
-                       baked, str(device), None if fold is None else asdict(fold))  # fmt: skip
+                       baked, str(device), None if fold is None else asdict(fold),
+                       None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
+                       skin_weights)  # fmt: skip
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
