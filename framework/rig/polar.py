@@ -13,9 +13,6 @@ The rotational part itself is perfectly differentiable there: its derivative onl
   U diag(1, 1, det(U V^T)) V^T) or nearly singular (e.g. a 50/50 blend of antipodal bone rotations, which is rank 1)
   -- are routed to a float64 SVD on that subset only, whose *values* are fine. method="svd" runs the float64 SVD on
   everything (the reference; measured 2.4x slower than float64 Newton on 8k matrices on one CPU core).
-  Matrices that already are rotations (a Gaussian skinned by bones that turn together: one bone, or joints a scene
-  froze) do not move in the first step; when at least half of a batch is such, the remaining steps iterate only the
-  others. Measured on a near-static avatar with 18 of 22 joints frozen: 78 % of the Gaussians.
 - Backward (closed form): with dR = R [w]x and S symmetric, the skew part of R^T dA gives
   S [w]x + [w]x S = [(tr(S) I - S) w]x, so w = (tr(S) I - S)^-1 vee(R^T dA - dA^T R) and
   dL/dA = R [h]x with h = (tr(S) I - S)^-1 vee(R^T G - G^T R), G = dL/dR. The 3x3 solve is Tikhonov-regularised,
@@ -34,7 +31,6 @@ from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKH
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = {torch.float64: 1e-13, torch.float32: 1e-6}  # max |X_k+1 - X_k| that ends the iteration
 _NEWTON_UNCHECKED = 3  # iterations before convergence is first checked (each check is a host sync)
-_SETTLED_SHARE = 0.5  # iterate only the moving matrices after the first step when at least this share did not move
 
 
 def _cross_rows(a: Tensor, b: Tensor) -> Tensor:
@@ -62,41 +58,23 @@ def _rotation_svd(A: Tensor) -> Tensor:
     return U @ Vh
 
 
-def _newton_step(X: Tensor) -> Tensor:
-    """One scaled Newton step X <- (z X + X^-T / z) / 2 on [3, 3, M] (component-major)."""
-    C = torch.stack([_cross_rows(X[1], X[2]), _cross_rows(X[2], X[0]), _cross_rows(X[0], X[1])])  # cofactors
-    det = (X[0] * C[0]).sum(0)  # [M]
-    X_inv_T = C / det
-    zeta = torch.sqrt(X_inv_T.square().sum((0, 1)).sqrt() / X.square().sum((0, 1)).sqrt())  # [M]
-    return 0.5 * (zeta * X + X_inv_T / zeta)
-
-
 def _rotation_newton(A: Tensor) -> Tensor:
     """Orthogonal polar factor of well-conditioned A with det > 0, [M, 3, 3] in A's dtype (float32 or float64).
 
-    Works in a component-major layout X[i, j, m] so each step is a few dozen contiguous vector operations. A matrix
-    the first step leaves in place (moved < tol: a rotation already, ζ = 1 and X^-T = X) is settled; when most are,
-    the later steps run on the rest only.
+    Works in a component-major layout X[i, j, m] so each step is a few dozen contiguous vector operations.
     """
     X = A.permute(1, 2, 0).contiguous()  # [3, 3, M]
     tol = _NEWTON_TOL.get(A.dtype, 1e-6)
-    X_new = _newton_step(X)
-    moving = (X_new - X).abs().amax((0, 1)) >= tol  # [M]
-    out, rows = None, None
-    if X.shape[2] and float(moving.float().mean()) <= 1.0 - _SETTLED_SHARE:
-        out, rows = X_new, torch.nonzero(moving).squeeze(1)  # settled columns are final
-        X_new = X_new.index_select(2, rows)
-    X = X_new
-    for it in range(1, _NEWTON_MAX_ITERS):
-        if X.shape[2] == 0:
-            break
-        X_new = _newton_step(X)
+    for it in range(_NEWTON_MAX_ITERS):
+        C = torch.stack([_cross_rows(X[1], X[2]), _cross_rows(X[2], X[0]), _cross_rows(X[0], X[1])])  # cofactors
+        det = (X[0] * C[0]).sum(0)  # [M]
+        X_inv_T = C / det
+        zeta = torch.sqrt(X_inv_T.square().sum((0, 1)).sqrt() / X.square().sum((0, 1)).sqrt())  # [M]
+        X_new = 0.5 * (zeta * X + X_inv_T / zeta)
         done = it >= _NEWTON_UNCHECKED and float((X_new - X).abs().amax()) < tol
         X = X_new
         if done:
             break
-    if out is not None:
-        X = out.index_copy(2, rows, X)
     return X.permute(2, 0, 1)
 
 
