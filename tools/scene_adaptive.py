@@ -174,7 +174,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra overrides for every training")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--rounds", type=int, default=7, help="interleaved rounds of frame-rate timing (medians)")
+    ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
     args = ap.parse_args()
     extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
     results = {}
