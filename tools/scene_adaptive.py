@@ -62,18 +62,17 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
 
 
 def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int) -> dict:
-    """paper_full measured, auto pruned (measured before and after), one after the other in this process; then the
-    three models' frame rates again, interleaved over `rounds` rounds (medians)."""
+    """paper_full measured and auto pruned (sizes and PSNR before and after), then the three models' frame rates,
+    interleaved over `rounds` rounds (medians)."""
     from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
     module = load_checkpoint_module(full_ckpt, device=_device())
     dm = checkpoint_datamodule(module)
-    full = measure_module(module, dm, warmup=warmup, repeats=repeats,
-                          file_bytes=full_ckpt.stat().st_size)  # fmt: skip
+    full = measure_module(module, dm, repeats=0, file_bytes=full_ckpt.stat().st_size)  # fps: interleaved below
     auto_ckpt = scene_dir / "auto" / "checkpoints" / "final.ckpt"
     pruned_ckpt = auto_ckpt.with_name("final.pruned.ckpt")
-    report = prune_checkpoint(auto_ckpt, pruned_ckpt, warmup=warmup, repeats=repeats, device=_device())
+    report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device())  # fps: interleaved below
     measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
     fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
                           rounds)  # fmt: skip
@@ -142,14 +141,10 @@ def scene_table(name: str, result: dict) -> str:
     if comp.get("prune_tolerance") is not None:
         pruned += f" ({comp['removed_within_tolerance']} of them the faintest, within {comp['prune_tolerance']:.4f})"
     if fold:
-        if fold["folded"]:
-            what = "folded into the Gaussians"
-        elif fold.get("folded_gaussians"):
-            what = f"folded for {fold['folded_gaussians']} of {fold['num_gaussians']} Gaussians"
-        else:
-            what = "kept"
-        pruned += (f"; F_a {what} (training frames render {fold['render_rms']:.4f} RMS apart, tolerance "
-                   f"{fold['tolerance']:.4f})")  # fmt: skip
+        from framework.model.corrector_fold import fold_outcome
+
+        pruned += (f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
+                   f"tolerance {fold['tolerance']:.4f}")  # fmt: skip
     if comp.get("render_rms") is not None:
         pruned += (
             f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "

@@ -53,6 +53,15 @@ class CorrectorFold:
         return max(self.spread.values(), default=0.0)
 
 
+def fold_outcome(fold: dict) -> str:
+    """What happened to F_a, in words, from a `CorrectorFold` as a dict (as reports store it)."""
+    if fold["folded"]:
+        return "folded into the Gaussians"
+    if fold.get("folded_gaussians"):
+        return f"folded for {fold['folded_gaussians']} of {fold['num_gaussians']} Gaussians (the MLP runs on the rest)"
+    return "kept"
+
+
 def _attributes(g: Gaussians) -> dict[str, Tensor]:
     return {
         "opacity": g.opacity_logits,

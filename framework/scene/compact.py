@@ -21,7 +21,7 @@ import torch
 from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps
-from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector
+from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
     DEFAULT_SH_TOLERANCE,
@@ -85,14 +85,7 @@ class PruneReport:
         if self.corrector_fold is not None:
             f = self.corrector_fold
             spread = ", ".join(f"{k} {v:.4f}" for k, v in f["spread"].items())
-            if f["folded"]:
-                what = "folded into the Gaussians"
-            elif f.get("folded_gaussians"):
-                what = (f"folded for {f['folded_gaussians']} of {f['num_gaussians']} Gaussians "
-                        "(the MLP runs on the rest)")  # fmt: skip
-            else:
-                what = "kept"
-            lines.append(f"[splatrig] F_a {what}: training frames render {f['render_rms']:.5f} RMS apart "
+            lines.append(f"[splatrig] F_a {fold_outcome(f)}: training frames render {f['render_rms']:.5f} RMS apart "
                          f"(fold_tolerance {f['tolerance']:.4g}); "
                          f"largest spread of its output over the training poses: {spread}")  # fmt: skip
         if self.render_rms is not None:
