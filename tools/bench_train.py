@@ -21,7 +21,9 @@ processes included). Warm-up steps at the start of each stage are dropped.
 In the same run, the Gaussians, camera and SH degree of the last stage-2 step are rendered by an eager `torch_ref`
 forward+backward (L1 to a fixed image + mean alpha, as `tools/bench_rasterizers.py`), so the ratio step / rasterizer
 reads off one table; next to it, the paper's two MLPs alone (F_a on the N Gaussians, F_dw on the 7N L_w points),
-forward+backward: GEMM arithmetic every implementation of the step must do. Dataset images are decoded once before
+forward+backward: GEMM arithmetic every implementation of the step must do. A last table turns that into a lower
+bound on the stage-2 step on this machine: the rasterizer's time plus the MLPs' FLOPs (counted by torch's
+FlopCounterMode) at the best sgemm rate measured in the same run. Dataset images are decoded once before
 timing (a long run reads them from its in-memory cache after the first epoch); `--cold-data` times first reads
 instead.
 """
@@ -184,6 +186,8 @@ class VariantResult:
     sh_degree_stage2: int = 0
     raster_fwd_bwd_ms: list[float] = field(default_factory=list)
     mlp_fwd_bwd_ms: list[float] = field(default_factory=list)  # F_a at N and F_dw at 7N points, GEMM floor
+    mlp_gflop: float = 0.0  # their forward+backward arithmetic, counted by torch's FlopCounterMode
+    gemm_gflops: list[float] = field(default_factory=list)  # the machine's best sgemm rate, measured in the run
     peak_rss_mb: float = 0.0
     setup_s: float = 0.0  # from the start of `run` to the first step (build body, data, module, trainer)
     wall_s: float = 0.0
@@ -406,7 +410,8 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
     result.peak_rss_mb = inst.rss_peak
     if inst.render_args is not None:
         result.raster_fwd_bwd_ms = raster_reference(inst.render_args, args.raster_repeats)
-        result.mlp_fwd_bwd_ms = mlp_reference(inst.module, inst.render_args, args.raster_repeats)
+        result.mlp_fwd_bwd_ms, result.mlp_gflop = mlp_reference(inst.module, inst.render_args, args.raster_repeats)
+        result.gemm_gflops = gemm_rate(args.raster_repeats, inst.module.device)
     return result
 
 
@@ -423,13 +428,18 @@ def _timed_ms(fn: Callable[[], None], repeats: int, device: torch.device) -> lis
     return [once() for _ in range(repeats)]
 
 
-def mlp_reference(module: Any, render_args: tuple, repeats: int) -> list[float]:
+def mlp_reference(module: Any, render_args: tuple, repeats: int) -> tuple[list[float], float]:
     """The paper's two MLPs alone, forward + backward at the step's sizes: F_a on the N Gaussians and F_dw on the 7N
-    L_w points (stage 2). Their GEMMs are arithmetic every variant must do, a floor under the step time."""
+    L_w points (stage 2). Their GEMMs are arithmetic every variant must do, a floor under the step time.
+
+    Returns (ms per forward+backward, GFLOP of one), the FLOPs counted by `torch.utils.flop_counter.FlopCounterMode`
+    (every matmul of the forward and the backward, as autograd runs them)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
     corrector, deformer = module.avatar.corrector, module.avatar.deformer
     mlp, head = getattr(deformer, "mlp", None), getattr(corrector, "head", None)
     if mlp is None or head is None:
-        return []
+        return [], 0.0
     g = module.avatar.gaussians.gaussians()
     n, device = g.num, g.means.device
     pose = torch.zeros(corrector.num_pose_features, device=device)
@@ -441,7 +451,19 @@ def mlp_reference(module: Any, render_args: tuple, repeats: int) -> list[float]:
         (f_a.square().sum() + mlp(feats).square().sum()).backward()
         module.zero_grad(set_to_none=True)
 
-    return _timed_ms(fwd_bwd, repeats, device)
+    counter = FlopCounterMode(display=False)
+    with counter:
+        fwd_bwd()
+    return _timed_ms(fwd_bwd, repeats, device), counter.get_total_flops() / 1e9
+
+
+def gemm_rate(repeats: int, device: torch.device, size: int = 2048) -> list[float]:
+    """GFLOP/s of a float32 size x size matrix product on this machine: the best rate its BLAS reaches (square
+    products are its most efficient shape; the MLPs' skinny ones run slower), so MLP FLOPs / this rate bounds their
+    time from below on this hardware."""
+    gen = torch.Generator().manual_seed(2)
+    a, b = (torch.rand(size, size, generator=gen).to(device) for _ in range(2))
+    return [2 * size**3 / (ms * 1e6) for ms in _timed_ms(lambda: a @ b, repeats, device)]
 
 
 def raster_reference(render_args: tuple, repeats: int) -> list[float]:
@@ -565,6 +587,33 @@ def summary_table(results: list[VariantResult], warmup: int) -> str:
     return "\n".join(lines)
 
 
+def floor_table(results: list[VariantResult], warmup: int) -> str:
+    """Why a stage-2 step cannot reach 2x the rasterizer here: a lower bound from arithmetic alone.
+
+    Any implementation of the paper's stage-2 step renders the image (forward+backward) and runs F_a and F_dw forward
+    and backward. The bound charges the rasterizer its measured eager time and the MLPs their FLOPs at the machine's
+    best GEMM rate (a square sgemm, measured in the same run), and nothing else (no D-SSIM, no skinning, no
+    optimizer): a step cannot be faster than it on this hardware, whatever the code."""
+    lines = [
+        "| variant | torch_ref fwd+bwd ms | F_a + F_dw GFLOP (fwd+bwd) | best sgemm GFLOP/s | MLPs at that rate ms "
+        "| lower bound ms | lower bound / torch_ref | MLPs measured ms (GFLOP/s) | stage 2 step / lower bound |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for res in results:
+        s2 = stage_summary(res, 2, warmup)
+        if not (res.raster_fwd_bwd_ms and res.mlp_fwd_bwd_ms and res.gemm_gflops and s2):
+            continue
+        raster, rate, mlp_ms = _med(res.raster_fwd_bwd_ms), max(res.gemm_gflops), _med(res.mlp_fwd_bwd_ms)
+        at_peak = res.mlp_gflop / rate * 1e3
+        bound = raster + at_peak
+        lines.append(
+            f"| {res.name} | {raster:.1f} | {res.mlp_gflop:.2f} | {rate:.0f} | {at_peak:.1f} | {bound:.1f} "
+            f"| **{bound / raster:.2f}** | {mlp_ms:.1f} ({res.mlp_gflop / mlp_ms * 1e3:.0f}) "
+            f"| {s2['step_median_ms'] / bound:.2f} |"
+        )
+    return "\n".join(lines) if len(lines) > 2 else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiment", default="paper_full")
@@ -609,6 +658,7 @@ def main(argv: list[str] | None = None) -> int:
                 results[name].steps += res.steps
                 results[name].raster_fwd_bwd_ms += res.raster_fwd_bwd_ms
                 results[name].mlp_fwd_bwd_ms += res.mlp_fwd_bwd_ms
+                results[name].gemm_gflops += res.gemm_gflops
                 results[name].peak_rss_mb = max(results[name].peak_rss_mb, res.peak_rss_mb)
             else:
                 results[name] = res
@@ -627,6 +677,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("\n" + header + "\n")
     print(summary_table(ordered, args.warmup))
+    floor = floor_table(ordered, args.warmup)
+    if floor:
+        print("\nA lower bound on the stage-2 step from arithmetic alone: the rasterizer's measured forward+backward "
+              "plus F_a's and F_dw's FLOPs at the best GEMM rate this machine reached in the run (a 2048^2 sgemm, "
+              "max over the repeats); nothing else of the step is charged.\n")
+        print(floor)
     print("\nPer-step breakdown: median wall ms / median process CPU ms of each section, per variant and stage.\n")
     print(breakdown_table(ordered, args.warmup))
     for res in ordered:
