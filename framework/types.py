@@ -88,6 +88,14 @@ class Cameras:
             idx = slice(idx, idx + 1)
         return Cameras(self.K[idx], self.world_to_cam[idx], self.width, self.height)
 
+    def resized(self, width: int, height: int) -> Cameras:
+        """The same cameras with images of width x height: the intrinsics' x row scales by width / self.width and the
+        y row by height / self.height (pixel i spans [i, i + 1], so a point's pixel coordinates scale exactly)."""
+        K = self.K.clone()
+        K[:, 0] *= width / self.width
+        K[:, 1] *= height / self.height
+        return Cameras(K, self.world_to_cam, width, height)
+
 
 @dataclass
 class RenderOutput:

@@ -679,9 +679,11 @@ def main(argv: list[str] | None = None) -> int:
     print(summary_table(ordered, args.warmup))
     floor = floor_table(ordered, args.warmup)
     if floor:
-        print("\nA lower bound on the stage-2 step from arithmetic alone: the rasterizer's measured forward+backward "
-              "plus F_a's and F_dw's FLOPs at the best GEMM rate this machine reached in the run (a 2048^2 sgemm, "
-              "max over the repeats); nothing else of the step is charged.\n")
+        print(
+            "\nA lower bound on the stage-2 step from arithmetic alone: the rasterizer's measured forward+backward "
+            "plus F_a's and F_dw's FLOPs at the best GEMM rate this machine reached in the run (a 2048^2 sgemm, "
+            "max over the repeats); nothing else of the step is charged.\n"
+        )
         print(floor)
     print("\nPer-step breakdown: median wall ms / median process CPU ms of each section, per variant and stage.\n")
     print(breakdown_table(ordered, args.warmup))

@@ -36,9 +36,5 @@ def sequence_cameras(module, dm, mode: str, num: int, camera_index: int = 0, tur
         if not 0 <= camera_index < train_cams.num:
             last = train_cams.num - 1
             raise SplatrigError(f"camera_index={camera_index}: the dataset has cameras 0..{last}; pick one of them.")
-        K = train_cams.K[camera_index : camera_index + 1].clone()
-        K[:, 0] *= width / train_cams.width
-        K[:, 1] *= height / train_cams.height
-        cam = Cameras(K, train_cams.world_to_cam[camera_index : camera_index + 1], width, height)
-        return [cam] * num
+        return [train_cams.index(camera_index).resized(width, height)] * num
     raise SplatrigError(f"cameras={mode}: expected 'orbit' or 'fixed'.")
