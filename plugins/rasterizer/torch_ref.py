@@ -86,15 +86,15 @@ def pair_transmittance(alpha: Tensor, pix: Tensor, num_pixels: int) -> tuple[Ten
     pairs would lose the digits. Early termination: a pair counts only while T after it stays > 1e-4; that is a prefix
     of every pixel's segment (usually nearly all of it), so the rest is switched off rather than removed."""
     log1m = torch.log1p(-alpha)
-    cs = torch.cumsum(log1m.double(), 0)
+    cs = torch.cumsum(log1m, 0, dtype=torch.float64)
     counts = torch.bincount(pix, minlength=num_pixels)
     first = (torch.cumsum(counts, 0) - counts).clamp_max(pix.shape[0] - 1)
-    excl = cs - log1m
-    base = torch.take(torch.take(excl, first), pix)  # running sum before each pixel's segment
-    keep = (cs - base) > LOG_T_MIN
+    base = torch.take(torch.take(cs, first) - torch.take(log1m, first), pix)  # running sum before each pixel's segment
+    through = cs.sub_(base)  # log T after each pair, within its pixel
+    keep = through > LOG_T_MIN
+    T = through.sub_(log1m).to(alpha.dtype).exp_()  # transmittance before each pair
     alpha = torch.where(keep, alpha, 0.0)
     log1m = torch.where(keep, log1m, 0.0)  # = log1p(-alpha) of the switched-off alpha
-    T = excl.sub_(base).to(alpha.dtype).exp_()  # transmittance before each pair
     return alpha, log1m, T, counts
 
 
@@ -247,7 +247,7 @@ class _Composite(torch.autograd.Function):
             torch.take(grads[i], pix, out=pair_grads[i])
         v = k.backward_terms(pair_cols[:K], pair_grads)
         w = T * alpha
-        cs = torch.cumsum((w * v).double(), 0)
+        cs = torch.cumsum(w * v, 0, dtype=torch.float64)
         last = (torch.cumsum(counts, 0) - 1).clamp_min(0)
         after = torch.take(torch.take(cs, last), pix).sub_(cs).to(T.dtype)  # sum of w * v over later pairs
         acc = k.scatter(M, pair_grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
