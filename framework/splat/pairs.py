@@ -50,11 +50,7 @@ def enumerate_pairs(
     nrows = (y1 - y0 + 1).clamp_min(0)  # [M]
     R = int(nrows.sum())
     r_ent = torch.repeat_interleave(torch.arange(M, device=dev), nrows, output_size=R)  # [R]
-    r_y = (
-        torch.take(y0, r_ent)
-        + torch.arange(R, device=dev)
-        - torch.take(torch.cumsum(nrows, 0) - nrows, r_ent)
-    )
+    r_y = torch.take(y0, r_ent) + torch.arange(R, device=dev) - torch.take(torch.cumsum(nrows, 0) - nrows, r_ent)
     dy = torch.take(means2d[:, 1], r_ent) - (r_y.to(means2d.dtype) + 0.5)
     a, b, c = (torch.take(conics[:, i], r_ent) for i in range(3))
     L = torch.log((torch.take(opacities, r_ent) / ALPHA_MIN).clamp_min(1.0))

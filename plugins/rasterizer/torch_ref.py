@@ -102,15 +102,20 @@ def _rows(k: int, n: int, like: Tensor) -> Tensor:
     return torch.empty(k, n, dtype=like.dtype, device=like.device)
 
 
-def forward_accumulate(pair_cols: Tensor, counts: Tensor, T: Tensor, alpha: Tensor, log1m: Tensor) -> Tensor:
-    """Per-pixel sums [num_pixels, 5] of w * (r, g, b, z) and log(1 - alpha), w = T * alpha.
+def forward_accumulate(
+    pair_cols: Tensor, pix: Tensor, num_pixels: int, T: Tensor, alpha: Tensor, log1m: Tensor
+) -> Tensor:
+    """Per-pixel sums [5, num_pixels] of w * (r, g, b, z) and log(1 - alpha), w = T * alpha.
 
-    Pairs are sorted by pixel, so the sums are segment sums (`counts` pairs per pixel), which is faster than a
-    scatter. `pair_cols` [4, P] holds each pair's entry r, g, b, z (gathered once, kept for the backward). The terms
-    are written as contiguous rows and summed row by row (measured faster than filling the columns of a [P, 5]).
+    `pair_cols` [4, P] holds each pair's entry r, g, b, z (gathered once, kept for the backward). The terms are
+    contiguous rows added into the pixels' columns by `index_add_` along dim 1. With the pairs sorted by pixel that
+    writes almost sequentially and sums in pair order, like a segment sum, at half the cost of five
+    `segment_reduce` calls (707k pairs into 65k pixels: 8.2 against 12.5 ms; 1.5M into 262k: 17 against 35 ms).
     """
-    src = torch.mul(pair_cols, T * alpha)  # [4, P]
-    return torch.stack([torch.segment_reduce(row, "sum", lengths=counts) for row in (*src, log1m)], dim=1)
+    acc = torch.zeros(5, num_pixels, dtype=T.dtype, device=T.device)
+    acc[:4].index_add_(1, pix, torch.mul(pair_cols, T * alpha))
+    acc[4:].index_add_(1, pix, log1m.unsqueeze(0))
+    return acc
 
 
 def backward_pair_terms(pair_cols: Tensor, pair_grads: Tensor) -> Tensor:
@@ -216,11 +221,11 @@ class _Composite(torch.autograd.Function):
         pair_cols = _rows(4, ent.shape[0], colors)  # [4, P]: each pair's entry r, g, b, z
         for i, col in enumerate((*colors.unbind(1), depths)):
             torch.take(col, ent, out=pair_cols[i])
-        acc = kernels.accumulate(pair_cols, counts, T, alpha, log1m)  # [num_pixels, 5]
-        T_final = torch.exp(acc[:, 4])
+        acc = kernels.accumulate(pair_cols, pix, num_pixels, T, alpha, log1m)  # [5, num_pixels]
+        T_final = torch.exp(acc[4])
         ctx.save_for_backward(ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final)
         ctx.set_materialize_grads(False)  # an unused output (depth, usually) gets no backward work
-        return acc[:, :3], T_final, acc[:, 3]
+        return acc[:3].t().contiguous(), T_final, acc[3]
 
     @staticmethod
     @torch.autograd.function.once_differentiable
