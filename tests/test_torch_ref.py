@@ -59,6 +59,28 @@ def test_matches_brute_force_reference(raster, seed: int, degree: int, cams: int
         assert _rel(a, b) < 1e-9, name
 
 
+def test_mostly_culled_scene_matches_reference(raster) -> None:
+    """With fewer than half of the (camera, Gaussian) entries visible, colours come from gathered coefficients
+    instead of per-Gaussian SH: values and gradients still equal the float64 brute force (culled ones get zero)."""
+    scene = make_random_scene(4, 40, 30, 22, dtype=torch.float64, num_cameras=2, sh_degree=3)
+    means = scene.means.clone()
+    means[:28, 0] += 50.0  # far outside both images: culled by the screen box
+    scene = scene.with_tensors([means, *scene.tensors()[1:]])
+    c = scene.cameras
+    proj = project_gaussians(*scene.tensors()[:4], c.K, c.world_to_cam, c.width, c.height)
+    assert 0 < 2 * int(proj.valid.sum()) < proj.valid.numel()  # the gathered-coefficient branch
+    p1 = [t.clone().requires_grad_() for t in scene.tensors()]
+    p2 = [t.clone().requires_grad_() for t in scene.tensors()]
+    out = render_scene(raster, scene.with_tensors(p1))
+    ref = _reference(scene.with_tensors(p2))
+    assert _rel(out.rgb, ref["rgb"]) < 1e-10
+    w = torch.randn(ref["rgb"].shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    g1 = torch.autograd.grad((out.rgb * w).sum(), p1)
+    g2 = torch.autograd.grad((ref["rgb"] * w).sum(), p2)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "sh"), g1, g2, strict=True):
+        assert _rel(a, b) < 1e-9, name
+
+
 def test_wide_pixel_keys_match_reference(raster) -> None:
     """Above 65536 stacked pixels the pair sort keys are int32 instead of int16: three 160 x 160 cameras (76800
     pixels) against the float64 brute force, values and gradients."""
