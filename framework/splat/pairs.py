@@ -78,4 +78,4 @@ def sort_pairs_by_pixel(ent: Tensor, pix: Tensor, num_pixels: int) -> tuple[Tens
     shift = 2**15 if num_pixels <= 2**16 else 0
     key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
     keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)
-    return torch.take(ent, perm), keys.long() + shift
+    return torch.take(ent, perm), keys.long().add_(shift)

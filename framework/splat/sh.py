@@ -92,9 +92,33 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
             f"{tuple(coeffs.shape)}; pass sh_degree <= {int(coeffs.shape[-2] ** 0.5) - 1} or allocate more."
         )
     basis = sh_basis(degree, dirs)  # [..., k]
-    # a broadcast product and sum (a batched [1, k] x [k, 3] matmul per Gaussian was measured slower on CPU,
-    # mostly in its backward)
-    return (basis.unsqueeze(-1) * coeffs[..., :k, :]).sum(-2)  # [..., 3]
+    return _BasisDot.apply(basis, coeffs[..., :k, :])  # [..., 3]
+
+
+class _BasisDot(torch.autograd.Function):
+    """sum_k basis[..., k] * coeffs[..., k, :] with a hand-written backward (leading dims broadcast).
+
+    Forward is a broadcast product and sum (a batched [1, k] x [k, 3] matmul per Gaussian was measured slower on
+    CPU). Backward gets the basis gradient as one batched [k, 3] x [3, 1] product. Autograd's way is a broadcast
+    product and a sum over the colour axis. At 30k Gaussians of degree 3 on CPU this product's forward+backward takes
+    8.9 instead of 11.9 ms, and `eval_sh` as a whole 17-18 instead of 20 ms."""
+
+    @staticmethod
+    def forward(ctx, basis: Tensor, coeffs: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(basis, coeffs)
+        return (basis.unsqueeze(-1) * coeffs).sum(-2)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:  # type: ignore[override]
+        basis, coeffs = ctx.saved_tensors
+        g_basis = g_coeffs = None
+        if ctx.needs_input_grad[0]:
+            c = coeffs.expand(*grad.shape[:-1], *coeffs.shape[-2:])  # [..., k, 3]
+            g_basis = torch.matmul(c, grad.unsqueeze(-1)).squeeze(-1).sum_to_size(basis.shape)
+        if ctx.needs_input_grad[1]:
+            g_coeffs = (basis.unsqueeze(-1) * grad.unsqueeze(-2)).sum_to_size(coeffs.shape)
+        return g_basis, g_coeffs
 
 
 def eval_sh_in_frames(degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor) -> Tensor:
