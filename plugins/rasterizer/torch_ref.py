@@ -7,7 +7,7 @@ padding and per-tile sorts of a tiled renderer cost far more than they save. Per
 2. one stable integer sort by pixel puts the pairs in (pixel, depth) order;
 3. composite every pixel with a segmented cumulative sum of log(1 - alpha) in float64 (a float32 running sum over
    millions of pairs would lose the per-pixel digits), which also gives the early-termination prefix;
-4. per-pixel sums are segment sums over the sorted pairs.
+4. per-pixel sums add the sorted pairs into their pixels in pair order (`index_add_` along the pixel axis).
 A custom autograd function does the compositing backward in closed form from a second segmented sum (the effect of
 each alpha on the pairs behind it), keeping per-pair indices, offsets, alpha, transmittance and the entry values the
 forward gathered for each pair (conic, opacity, colour, depth), so the backward gathers only per-pixel gradients.
