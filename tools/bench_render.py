@@ -7,6 +7,12 @@ Two cases, as a viewer uses them:
 - novel view: one pose seen from a new camera; the corrected, posed Gaussians are cached, so only rasterisation runs.
 - novel pose: a new pose every frame: F_a correction + LBS (baked weights) + rasterisation.
 Timing covers the whole frame (synchronised on CUDA); medians of `--repeats` frames after `--warmup`.
+
+A second table splits the novel-pose frame of the first backend into its parts (bone transforms, F_a, LBS, the view
+colour, the rasterizer; each part timed on its own frames, so their sum is close to, not equal to, the whole frame),
+and a last line bounds the novel-pose / novel-view ratio from below on this machine: the novel-view frame plus F_a's
+forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
+(`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
 Without --ckpt, Gaussians are sampled on the body surface and the paper's latent corrector is used as initialised.
 """
 
@@ -14,15 +20,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
+import time
+from collections.abc import Callable
 
 import torch
 
 from framework.cameras import orbit_cameras
+from framework.evaluation.gemm_rate import gemm_rate
 from framework.model.avatar import Avatar, GaussianParams
-from framework.model.frame_timing import time_frames
+from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
-from framework.types import FrameBatch
+from framework.types import FrameBatch, RenderOutput
 
 
 def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
@@ -45,6 +55,67 @@ def trained_avatar(ckpt: str, device: str) -> Avatar:
     module = load_module(ckpt, map_location=device)
     module.bake_weights()
     return module.avatar.to(device)
+
+
+def frame_batch(cams, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:
+    """The batch of frame i: camera i of the orbit, `pose` [1, J, 3]; image tensors are placeholders (not read)."""
+    return FrameBatch(
+        image=torch.empty(1, res, res, 3, device=device), mask=torch.empty(1, res, res, device=device),
+        boundary=torch.empty(1, res, res, device=device), cameras=cams.index(i % cams.num),
+        frame=torch.zeros(1, dtype=torch.long, device=device), pose=pose,
+    )  # fmt: skip
+
+
+POSE_PARTS = ("bone transforms", "corrector F_a", "LBS (polar, skinning)", "view colour (SH at R^T d)", "rasterizer")
+
+
+def pose_frame(avatar: Avatar, batch: FrameBatch, mark: Callable[[], None] = lambda: None) -> RenderOutput:
+    """`Avatar.forward`'s novel-pose path for one camera, written out part by part; `mark` is called after each of
+    the `POSE_PARTS` (tests check that the image equals the avatar's own)."""
+    transforms, pose_features = avatar.bone_transforms(batch)
+    mark()
+    corrected = avatar.corrector(avatar.gaussians.gaussians(3), pose_features)
+    mark()
+    deformed = avatar.deformer(corrected, transforms, defer_sh=True)
+    mark()
+    posed, sh, degree = deformed.posed, deformed.posed.sh, 3
+    if deformed.sh_frames is not None:
+        sh, degree = avatar._view_colour(posed, deformed.sh_frames, batch, 3), 0
+    mark()
+    out = avatar.rasterizer.render(
+        posed.means, posed.quats, torch.exp(posed.log_scales), torch.sigmoid(posed.opacity_logits), sh,
+        batch.cameras, sh_degree=degree, background=avatar.background,
+    )  # fmt: skip
+    mark()
+    return out
+
+
+def pose_frame_parts(avatar: Avatar, batches: list[FrameBatch], warmup: int, device: str) -> dict[str, float]:
+    """Median ms of each part of the novel-pose frame over `batches` (one new pose each) after `warmup` of them."""
+    times: dict[str, list[float]] = {k: [] for k in POSE_PARTS}
+    with torch.no_grad():
+        for i, batch in enumerate(batches):
+            marks = [time.perf_counter()]
+
+            def mark(marks: list[float] = marks) -> None:
+                synchronize(device)
+                marks.append(time.perf_counter())
+
+            pose_frame(avatar, batch, mark)
+            if i >= warmup:
+                for k, a, b in zip(POSE_PARTS, marks[:-1], marks[1:], strict=True):
+                    times[k].append((b - a) * 1e3)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
+def corrector_gflop(avatar: Avatar, pose_features: torch.Tensor) -> float:
+    """GFLOP of one F_a forward over the avatar's Gaussians (0 without an MLP corrector)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    with torch.no_grad(), counter:
+        avatar.corrector(avatar.gaussians.gaussians(3), pose_features)
+    return counter.get_total_flops() / 1e9
 
 
 def main() -> None:
@@ -71,6 +142,7 @@ def main() -> None:
     res = args.resolution
     names = args.backends or [e.name for e in RASTERIZERS if e.unavailable_reason() is None]
     rows, records = [], []
+    view_ms: dict[str, float] = {}
     for name in names:
         reason = RASTERIZERS.entry(name).unavailable_reason()
         if reason:
@@ -80,25 +152,53 @@ def main() -> None:
 
         def frame(i: int, novel_pose: bool) -> None:
             pose = poses[i % len(poses) if novel_pose else 0][None]
-            dev = args.device
-            batch = FrameBatch(
-                image=torch.empty(1, res, res, 3, device=dev), mask=torch.empty(1, res, res, device=dev),
-                boundary=torch.empty(1, res, res, device=dev), cameras=cams.index(i % cams.num),
-                frame=torch.zeros(1, dtype=torch.long, device=dev), pose=pose,
-            )  # fmt: skip
-            avatar(batch, sh_degree=3)
+            avatar(frame_batch(cams, pose, i, res, args.device), sh_degree=3)
 
         with torch.no_grad():
             t_view = time_frames(lambda i: frame(i, False), args.warmup, args.repeats, args.device)
             t_pose = time_frames(lambda i: frame(i, True), args.warmup, args.repeats, args.device)
+        view_ms[name] = t_view * 1e3
         rows.append((name, f"{1 / t_view:.1f}", f"{1 / t_pose:.1f}", ""))
         records.append({"backend": name, "novel_view_fps": 1 / t_view, "novel_pose_fps": 1 / t_pose})
     n = avatar.gaussians.num
     print(f"\n{n} Gaussians, {res}x{res}, device {args.device}, {J} joints; medians of {args.repeats} frames\n")
     print(format_table(rows, ("backend", "novel-view fps", "novel-pose fps", "note")))
+    report: dict = {"num_gaussians": n, "resolution": res, "device": args.device, "results": records}
+    if view_ms:
+        report["pose_path"] = pose_path_report(avatar, view_ms, cams, poses, args)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"num_gaussians": n, "resolution": res, "device": args.device, "results": records}, f, indent=2)
+            json.dump(report, f, indent=2)
+
+
+def pose_path_report(avatar: Avatar, view_ms: dict[str, float], cams, poses: torch.Tensor, args) -> dict:
+    """Print (and return) the novel-pose frame's parts for the first timed backend and the ratio's lower bound."""
+    name = next(iter(view_ms))
+    avatar.rasterizer = RASTERIZERS.build(name)
+    res, dev = args.resolution, args.device
+    batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
+    parts = pose_frame_parts(avatar, batches, args.warmup, dev)
+    pose_only = sum(v for k, v in parts.items() if k != "rasterizer")
+    view = view_ms[name]
+    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms):\n")
+    table = [(k, f"{v:.1f}", f"{v / view:.2f}x") for k, v in parts.items()]
+    table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x"))
+    print(format_table(table, ("part", "ms", "of the novel-view frame")))
+    with torch.no_grad():
+        _, pose_features = avatar.bone_transforms(batches[0])
+    gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
+    rate = max(gemm_rate(max(3, args.repeats // 2), dev))
+    floor_ms = gflop / rate * 1e3
+    bound = (view + floor_ms) / view
+    print(
+        f"\nLower bound on this machine: the novel-view frame ({view:.1f} ms) plus F_a's {gflop:.3f} GFLOP forward at "
+        f"the best sgemm rate of this run ({rate:.0f} GFLOP/s: {floor_ms:.1f} ms), nothing else of the pose path: "
+        f"novel-pose / novel-view >= {bound:.2f}x (the parts measure {(view + pose_only) / view:.2f}x)."
+    )
+    return {
+        "backend": name, "parts_ms": parts, "novel_view_ms": view, "corrector_gflop": gflop,
+        "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
+    }  # fmt: skip
 
 
 if __name__ == "__main__":

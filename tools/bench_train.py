@@ -53,6 +53,8 @@ UNATTRIBUTED = "Lightning loop (outside every section)"
 
 import torch  # noqa: E402  (after framework.train on purpose)
 
+from framework.evaluation.gemm_rate import gemm_rate  # noqa: E402
+
 # name -> Hydra overrides; a variant whose overrides do not compose (e.g. a key an older commit lacks) is skipped.
 VARIANTS: dict[str, list[str]] = {
     "default": [],
@@ -455,15 +457,6 @@ def mlp_reference(module: Any, render_args: tuple, repeats: int) -> tuple[list[f
     with counter:
         fwd_bwd()
     return _timed_ms(fwd_bwd, repeats, device), counter.get_total_flops() / 1e9
-
-
-def gemm_rate(repeats: int, device: torch.device, size: int = 2048) -> list[float]:
-    """GFLOP/s of a float32 size x size matrix product on this machine: the best rate its BLAS reaches (square
-    products are its most efficient shape; the MLPs' skinny ones run slower), so MLP FLOPs / this rate bounds their
-    time from below on this hardware."""
-    gen = torch.Generator().manual_seed(2)
-    a, b = (torch.rand(size, size, generator=gen).to(device) for _ in range(2))
-    return [2 * size**3 / (ms * 1e6) for ms in _timed_ms(lambda: a @ b, repeats, device)]
 
 
 def raster_reference(render_args: tuple, repeats: int) -> list[float]:

@@ -68,7 +68,9 @@ class MLPCorrector(Corrector):
         self.feature_in = nn.Linear(self.feature_dim, self.hidden)
         trunk: list[nn.Module] = []
         for _ in range(self.num_layers - 2):
-            trunk += [nn.Linear(self.hidden, self.hidden), nn.ReLU()]
+            # in place: the activation overwrites the product it follows (whose backward does not read it), so no
+            # [N, H] temporary is allocated per layer
+            trunk += [nn.Linear(self.hidden, self.hidden), nn.ReLU(inplace=True)]
         self.trunk = nn.Sequential(*trunk)
         self.head = nn.Linear(self.hidden, 1 + 3 + 4 + 3 * self.num_sh_out)
         nn.init.zeros_(self.head.weight)
@@ -101,7 +103,7 @@ class MLPCorrector(Corrector):
                 )
             f = f.index_select(0, rows)  # [M, F]
         h = self.feature_in(f) + self.pose_in(pose.to(f.dtype))  # [M, H] + [H]
-        h = self.trunk(torch.relu(h))
+        h = self.trunk(torch.relu_(h))
         out = self.head(h)  # [M, out]
         if not rows.numel():
             return out

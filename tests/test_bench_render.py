@@ -1,0 +1,61 @@
+"""tools/bench_render.py's pose-path table: it must time the avatar's own novel-pose path, and its lower bound must
+count F_a's arithmetic right."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from framework.cameras import orbit_cameras
+from framework.plugins import load_plugins
+
+load_plugins()
+
+
+@pytest.fixture(scope="module")
+def tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "bench_render.py"
+    spec = importlib.util.spec_from_file_location("bench_render", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def avatar(tool):
+    torch.manual_seed(0)
+    av = tool.synthetic_avatar("procedural", 400, "cpu").eval()
+    for p in av.corrector.parameters():  # a corrector that changes something (its last layer starts at zero)
+        torch.nn.init.normal_(p, std=0.05)
+    return av
+
+
+def test_written_out_pose_path_renders_the_avatars_image(tool, avatar) -> None:
+    """The parts the table times are Avatar.forward's novel-pose path: same image, every SH degree-3 term included."""
+    body = avatar.body
+    centre = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
+    cams = orbit_cameras(centre, 3.0, 0.0, 4, 48, 48, fov_deg=40)
+    pose = 0.3 * torch.randn(1, body.num_input_joints, 3, generator=torch.Generator().manual_seed(1))
+    batch = tool.frame_batch(cams, pose, 1, 48, "cpu")
+    calls = []
+    with torch.no_grad():
+        parts = tool.pose_frame(avatar, batch, lambda: calls.append(1))
+        whole = avatar(batch, sh_degree=3).render
+    assert len(calls) == len(tool.POSE_PARTS)
+    assert float(whole.alpha.amax()) > 0.5  # the body is in view
+    torch.testing.assert_close(parts.rgb, whole.rgb, rtol=0, atol=1e-6)
+    torch.testing.assert_close(parts.alpha, whole.alpha, rtol=0, atol=1e-6)
+
+
+def test_corrector_flops_match_the_layer_sizes(tool, avatar) -> None:
+    """FlopCounterMode's count against the closed form 2 (N (F H + (L - 2) H^2 + H O) + P H): per Gaussian the
+    feature layer, the trunk and the head; the pose layer once per frame (it is shared by every Gaussian)."""
+    c = avatar.corrector
+    n, H, F, P = avatar.gaussians.num, c.hidden, c.feature_dim, c.num_pose_features
+    O = c.head.out_features
+    expected = 2 * (n * (F * H + (c.num_layers - 2) * H * H + H * O) + P * H) / 1e9
+    pose_features = torch.zeros(P)
+    assert tool.corrector_gflop(avatar, pose_features) == pytest.approx(expected, rel=1e-9)
