@@ -9,7 +9,8 @@ Two cases, as a viewer uses them:
 Timing covers the whole frame (synchronised on CUDA); medians of `--repeats` frames after `--warmup`.
 
 A second table splits the novel-pose frame of the first backend into its parts (bone transforms, F_a, LBS, the view
-colour, the rasterizer; each part timed on its own frames, so their sum is close to, not equal to, the whole frame),
+colour, the rasterizer), timed in a further pass of frames with the clock read after each part; each part's median
+is over those frames, so the parts add up to about, not exactly, the novel-pose frame of the first table,
 and a last line bounds the novel-pose / novel-view ratio from below on this machine: the novel-view frame plus F_a's
 forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
 (`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
