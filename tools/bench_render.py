@@ -33,7 +33,7 @@ from framework.model.avatar import Avatar, GaussianParams
 from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
-from framework.types import FrameBatch, RenderOutput
+from framework.types import Cameras, FrameBatch, RenderOutput
 
 
 def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
@@ -58,7 +58,7 @@ def trained_avatar(ckpt: str, device: str) -> Avatar:
     return module.avatar.to(device)
 
 
-def frame_batch(cams, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:
+def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:
     """The batch of frame i: camera i of the orbit, `pose` [1, J, 3]; image tensors are placeholders (not read)."""
     return FrameBatch(
         image=torch.empty(1, res, res, 3, device=device), mask=torch.empty(1, res, res, device=device),
@@ -172,7 +172,9 @@ def main() -> None:
             json.dump(report, f, indent=2)
 
 
-def pose_path_report(avatar: Avatar, view_ms: dict[str, float], cams, poses: torch.Tensor, args) -> dict:
+def pose_path_report(
+    avatar: Avatar, view_ms: dict[str, float], cams: Cameras, poses: torch.Tensor, args: argparse.Namespace
+) -> dict:
     """Print (and return) the novel-pose frame's parts for the first timed backend and the ratio's lower bound."""
     name = next(iter(view_ms))
     avatar.rasterizer = RASTERIZERS.build(name)
