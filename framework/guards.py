@@ -42,6 +42,12 @@ WEIGHT_SUM_MIN = 1e-12
 """Floor of the sum of blend weights when they are renormalised to a partition of unity (`framework.rig.weight_field`
 for both the grid and the surface weights): all-zero weights stay zero instead of becoming 0/0 = NaN."""
 
+WEIGHT_PARTITION_TOL = 1e-5
+"""A blend-weight volume whose nodes are non-negative and sum to 1 within this is a partition of unity
+(`framework.rig.weight_field.WeightField`): its rows are renormalised once, in float64, and trilinear samples of it
+(convex combinations of rows) need no per-lookup clamp or renormalisation. A volume beyond it is renormalised per
+lookup, as any other. The grids `build_weight_grid` writes deviate by float32 rounding (about 1e-7)."""
+
 WEIGHT_VAR_MIN = 1e-12
 """Variances of blend weights below this count as zero in the L_w standard deviation (`framework.rig.lbs.weight_std`):
 sqrt has an infinite slope at 0, and rigid regions have a variance of exactly 0. The std of a variance below 1e-12 is

@@ -124,6 +124,26 @@ def test_dssim_hand():
     assert LOSSES.build("dssim")(same, batch, {}).item() == pytest.approx(0.0, abs=1e-6)
 
 
+def test_ssim_map_matches_kornia_values_and_gradients():
+    """The training loss's SSIM (five moments filtered in one call) against `kornia.metrics.ssim`, float64, on a batch
+    of two non-square images: same map and same gradient with respect to both images."""
+    from kornia.metrics import ssim as kornia_ssim
+
+    from framework.image.ssim import ssim_map
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64, requires_grad=True)
+    a2, b2 = (x.detach().clone().requires_grad_() for x in (a, b))
+    proj = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64)
+    ours, ref = ssim_map(a, b, 11), kornia_ssim(a2, b2, 11, max_val=1.0)
+    torch.testing.assert_close(ours, ref, rtol=0, atol=1e-12)
+    (ours * proj).sum().backward()
+    (ref * proj).sum().backward()
+    torch.testing.assert_close(a.grad, a2.grad, rtol=0, atol=1e-12)
+    torch.testing.assert_close(b.grad, b2.grad, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("fill", [0.0, 1.0])
 def test_extremes_finite(fill):
     """Constant images (zero variance, SSIM's 0/0 case), saturated alpha, and a 1x1 image."""

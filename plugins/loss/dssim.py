@@ -1,9 +1,10 @@
-"""D-SSIM = (1 - SSIM) / 2 with kornia's Gaussian-window SSIM (window 11, sigma 1.5)."""
+"""D-SSIM = (1 - SSIM) / 2 with kornia's Gaussian-window SSIM (window 11, sigma 1.5), moments filtered in one call."""
 
 from __future__ import annotations
 
 from torch import Tensor
 
+from framework.image.ssim import ssim_map
 from framework.interfaces.loss import Loss
 from framework.registry import register
 from framework.types import FrameBatch, RenderOutput
@@ -32,13 +33,10 @@ class DSSIMLoss(Loss):
         self.foreground_only = foreground_only
 
     def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
-        from kornia.metrics import ssim
-
         pred, target = to_nchw(render.rgb), to_nchw(batch.image.to(render.rgb.dtype))
         if self.foreground_only:
             keep = batch.mask.to(pred.dtype).unsqueeze(1)  # [B, 1, H, W]
             pred, target = pred * keep, target * keep
         # Reflected borders need the half window below the image size: tiny renders get a smaller window.
         window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
-        ssim_map = ssim(pred, target, window, max_val=1.0)  # [B, 3, H, W]
-        return ((1.0 - ssim_map) / 2.0).mean()
+        return ((1.0 - ssim_map(pred, target, window)) / 2.0).mean()  # map [B, 3, H, W]
