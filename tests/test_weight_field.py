@@ -130,3 +130,16 @@ def test_procedural_body_field_reproduces_vertex_weights_roughly():
     # trilinear interpolation of a 24^3 grid blurs sharp joints; the dominant joint must still agree
     agree = (w.argmax(1) == body.skin_weights.argmax(1)).float().mean()
     assert agree > 0.95
+
+
+def test_no_points():
+    """Zero query points (a model pruned to nothing) give [0, J] weights and a [0, 3] gradient, with and without
+    autograd."""
+    vol = torch.rand(5, 4, 4, 4)
+    field = WeightField(vol / vol.sum(0, keepdim=True), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
+    x = torch.zeros(0, 3, requires_grad=True)
+    w = field.sample(x)
+    w.sum().backward()
+    assert w.shape == (0, 5) and x.grad.shape == (0, 3)
+    with torch.no_grad():
+        assert field.sample(torch.zeros(2, 0, 3)).shape == (2, 0, 5)

@@ -9,13 +9,13 @@ the skin moves with the nearest skin. The grid is computed once per (body, box, 
 
 Sampling reads a channels-last copy of the volume ([R^3, J], each row one node's J weights, contiguous) with one
 `embedding_bag` call: each point is four bags of its 8 corner rows, weighted by the trilinear weights and by their
-derivatives along x, y and z, so the forward returns the value and keeps the three derivatives, and the backward is
-one [3, J] x [J] product per point. Nothing of size [M, 8, J] is written: on the 7 x 8k training points (2 cores),
-forward+backward of `sample` measured 32-34 ms against 40-45 ms for a gather of the corner rows and three lerps
-(which itself was 2.3x faster than `F.grid_sample`, which reads the channels-first volume with J strided loads per
-corner and computes the same values to float rounding, tested). A volume that is a partition of unity (every grid
-`build_weight_grid` writes) needs no clamp or renormalisation per lookup: trilinear samples are convex combinations
-of its rows.
+derivatives along x, y and z, so the forward returns the value and keeps the three derivatives, and the backward is one
+[3, J] x [J] product per point. Nothing of size [M, 8, J] is written. In `tools/bench_train.py` (paper_full, 7 x 8k
+points per step) this took the stage-1 backward from 61-69 ms to 50-54 ms, forward unchanged, against a gather of the
+corner rows and three lerps (which itself was 2.3x faster than `F.grid_sample`: that reads the channels-first volume
+with J strided loads per corner; it computes the same values to float rounding, tested). A volume that is a partition of
+unity (every grid `build_weight_grid` writes) needs no clamp or renormalisation per lookup: trilinear samples are convex
+combinations of its rows.
 """
 
 from __future__ import annotations
@@ -113,7 +113,8 @@ class _Trilinear(torch.autograd.Function):
         f = [torch.addcmul(a[i], frac[:, i : i + 1], b[i]) for i in range(3)]  # [M, 32] per axis
         bags = f[0].mul_(f[1]).mul_(f[2]).view(M * 4, 8)  # [4M, 8] corner weights, bag-major per point
         rows = idx.unsqueeze(1).expand(M, 4, 8).reshape(M * 4, 8)
-        out = F.embedding_bag(rows, table, per_sample_weights=bags, mode="sum").view(M, 4, -1)  # [M, 4, J]
+        out = F.embedding_bag(rows, table, per_sample_weights=bags, mode="sum")  # [4M, J]
+        out = out.view(M, 4, table.shape[1])  # [M, 4, J]
         ctx.save_for_backward(out)
         return out[:, 0]
 
@@ -199,6 +200,6 @@ class WeightField(nn.Module):
         if not self.partition_of_unity:  # else w is a convex combination of rows that already are
             w = w.clamp_min(0.0)
             w = w / w.sum(-1, keepdim=True).clamp_min(WEIGHT_SUM_MIN)
-        return w.to(points.dtype).reshape(*shape, -1)
+        return w.to(points.dtype).reshape(*shape, self.num_joints)
 
     forward = sample
