@@ -11,8 +11,6 @@ step. Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU path is alre
 from __future__ import annotations
 
 import torch
-from kornia.filters import filter2d_separable
-from kornia.filters.kernels import get_gaussian_kernel1d
 from torch import Tensor
 
 SIGMA = 1.5
@@ -21,6 +19,9 @@ SIGMA = 1.5
 
 def ssim_map(img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12) -> Tensor:
     """Per-pixel SSIM [B, C, H, W] of two images [B, C, H, W] ('same' size, reflected borders), as kornia's."""
+    from kornia.filters import filter2d_separable  # imported on first use: loading the plugins stays light
+    from kornia.filters.kernels import get_gaussian_kernel1d
+
     kernel = get_gaussian_kernel1d(window_size, SIGMA, device=img1.device, dtype=img1.dtype)  # [1, K]
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
     moments = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], dim=1)  # [B, 5C, H, W]
