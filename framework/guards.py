@@ -19,14 +19,6 @@ rotation (`framework.geometry.quat_normalize`, and the JAX rasterizer on the squ
 zero vector, leaving only the constant band (`framework.splat.sh.sh_basis`: the camera sits on the Gaussian's mean).
 Cost: a Gaussian whose quaternion norm is below 1e-12 renders as axis-aligned."""
 
-ROTMAT_QUAT_SQ_MIN = 1e-12
-"""Floor of 4 w^2 (and 4 x^2, ...) before the square root in `framework.geometry.rotmat_to_quat`: the best of the four
-formulas always has a value >= 1, the floor only keeps the unused ones (and their gradients) finite."""
-
-ROTMAT_QUAT_DENOM_MIN = 0.1
-"""Floor of the denominator 2 |q_k| of `rotmat_to_quat`'s four candidate formulas; the one chosen has |q_k| >= 0.5,
-so the floor only affects discarded candidates (whose gradients would otherwise be inf * 0 = NaN)."""
-
 AXIS_ANGLE_TAYLOR_SQ = 1e-8
 """theta^2 below which Rodrigues' sin(t)/t and (1 - cos t)/t^2 switch to their Taylor series
 (`framework.geometry.axis_angle_to_rotmat`): the closed forms lose every digit (and divide 0 by 0) at t = 0. The

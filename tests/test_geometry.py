@@ -1,10 +1,12 @@
-"""quat_to_rotmat's closed-form backward against an independent formula and finite differences."""
+"""quat_to_rotmat's closed-form backward and rotmat_to_quat against an independent formula and finite differences."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from framework.geometry import quat_to_rotmat
+from framework.geometry import axis_angle_to_rotmat, quat_to_rotmat, rotmat_to_quat
 
 
 def _rotmat_rodrigues(q: torch.Tensor) -> torch.Tensor:
@@ -41,3 +43,30 @@ def test_zero_quaternion_is_identity_with_zero_gradient() -> None:
     assert torch.equal(R, torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
     (grad,) = torch.autograd.grad(R.sum(), q)
     assert torch.equal(grad, torch.zeros_like(grad))
+
+
+def test_rotmat_to_quat_inverts_rodrigues() -> None:
+    """Unit quaternions (w > 0) -> R by Rodrigues (independent of the library) -> back: the same quaternion; every
+    quadrant of the four formulas is reached (each of w, x, y, z is the largest component for some rows)."""
+    g = torch.Generator().manual_seed(2)
+    q = torch.randn(4000, 4, generator=g, dtype=torch.float64)
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    assert set(q.abs().argmax(-1).tolist()) == {0, 1, 2, 3}
+    assert torch.allclose(rotmat_to_quat(_rotmat_rodrigues(q)), q, atol=1e-13)
+    assert rotmat_to_quat(_rotmat_rodrigues(q[:6]).reshape(2, 3, 3, 3)).shape == (2, 3, 4)
+
+
+def test_rotmat_to_quat_half_turns_and_gradients() -> None:
+    """180-degree rotations (w = 0, where the trace formula divides by zero): a quaternion of the same rotation,
+    finite gradients; gradcheck (finite differences) on generic rotations (at a half turn the sign convention w >= 0
+    flips the quaternion, so finite differences straddle a jump)."""
+    axes = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -2, 3]], dtype=torch.float64)
+    R = axis_angle_to_rotmat(math.pi * axes / axes.norm(dim=-1, keepdim=True)).requires_grad_()
+    q = rotmat_to_quat(R)
+    assert torch.allclose(q[:, 0], torch.zeros(5, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(_rotmat_rodrigues(q), R, atol=1e-12)
+    (grad,) = torch.autograd.grad((q * torch.randn(5, 4, dtype=torch.float64)).sum(), R)
+    assert torch.isfinite(grad).all()
+    generic = axis_angle_to_rotmat(torch.randn(6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3)))
+    assert torch.autograd.gradcheck(rotmat_to_quat, (generic.requires_grad_(),))
