@@ -139,3 +139,16 @@ def test_empty_and_batched_shapes():
     assert torch.allclose(polar_rotation(A), svd_rotation(A), atol=1e-10)
     with pytest.raises(ValueError, match=r"\[\.\.\., 3, 3\]"):
         polar_rotation(torch.zeros(4, 2, 2))
+
+
+def test_non_finite_matrices_give_the_identity_and_leave_the_others_alone():
+    """A NaN or inf entry (a diverged blend) gives the identity rotation for that matrix only."""
+    A = lbs_blends(50, max_angle=1.0).float()
+    A[7, 1, 2] = float("nan")
+    A[20, 0, 0] = float("inf")
+    R = polar_rotation_values(A)
+    bad = torch.zeros(50, dtype=torch.bool)
+    bad[[7, 20]] = True
+    assert torch.isfinite(R).all()
+    assert torch.equal(R[bad], torch.eye(3).expand(2, 3, 3))
+    assert (R[~bad].double() - svd_rotation(A[~bad].double())).abs().max() < 1e-6
