@@ -6,8 +6,7 @@ axes aligned with the world at rest, composed along the chain,
     G_k = G_parent(k) @ [R(θ_k) | j_k - j_parent(k)],   G_root = [R(θ_root) | j_root],
 
 and the rest-to-posed skinning transform is T_k = G_k @ translate(-j_k). An identity pose gives T_k = I.
-The chain is evaluated one depth level at a time (all joints whose parents are already posed in one batched product),
-so a 104-joint rig costs ~15 small matmuls instead of 104 Python iterations.
+The chain is composed by pointer jumping (`forward_kinematics_rotmat`): log2(depth) batched products for all joints.
 """
 
 from __future__ import annotations
@@ -60,51 +59,50 @@ def kinematic_levels(parents: Tensor | list[int]) -> tuple[tuple[tuple[int, ...]
     return _levels_cached(key)
 
 
-def _rigid(rot: Tensor, trans: Tensor) -> Tensor:
-    """[..., 3, 3], [..., 3] -> [..., 4, 4]."""
-    top = torch.cat([rot, trans.unsqueeze(-1)], dim=-1)  # [..., 3, 4]
-    bottom = torch.zeros_like(top[..., :1, :])
-    bottom[..., 0, 3] = 1.0
-    return torch.cat([top, bottom], dim=-2)
+@lru_cache(maxsize=64)
+def _ancestor_steps(parents: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """Pointer-jumping tables for `forward_kinematics_rotmat`: step s maps every joint to its 2^s-th ancestor, with
+    index J standing for "above the root" (an identity transform that maps to itself). ceil(log2(depth)) steps."""
+    depth = len(_levels_cached(parents))  # also checks that `parents` is a tree
+    J = len(parents)
+    ancestor = [p if p >= 0 else J for p in parents] + [J]
+    steps = []
+    span = 1
+    while span < depth:
+        steps.append(tuple(ancestor))
+        ancestor = [ancestor[a] for a in ancestor]
+        span *= 2
+    return tuple(steps)
 
 
 def forward_kinematics_rotmat(rotations: Tensor, joints: Tensor, parents: Tensor | list[int]) -> tuple[Tensor, Tensor]:
-    """Like `forward_kinematics` but with local rotation matrices [B, J, 3, 3] instead of axis-angle."""
+    """Like `forward_kinematics` but with local rotation matrices [B, J, 3, 3] instead of axis-angle.
+
+    The chain is composed by pointer jumping: every joint's transform relative to its 2^s-th ancestor comes from one
+    gather and one batched 4x4 product per step, so a 10-level chain takes 4 steps for all joints at once (a
+    22-joint, 10-level skeleton on a 2-core CPU: 0.93 -> 0.46 ms forward, 2.7 -> 1.2 ms forward+backward,
+    against one product per depth level)."""
     B, J = rotations.shape[:2]
     if joints.dim() == 2:
         joints = joints.unsqueeze(0)
     joints = joints.to(rotations.dtype).expand(B, J, 3)  # [B, J, 3]
-    levels = kinematic_levels(parents)
-    if sum(len(ids) for ids, _ in levels) != J:
-        raise ValueError(f"parents has {sum(len(i) for i, _ in levels)} joints but pose has {J}.")
-    par = torch.as_tensor([int(p) for p in (parents.tolist() if isinstance(parents, Tensor) else parents)])
-    par = par.clamp_min(0).to(joints.device)
-    offsets = joints - joints[:, par]  # [B, J, 3]; the root's row is replaced below
-
-    order: list[int] = []
-    A_levels: list[Tensor] = []  # accumulated world rotations per level [B, L, 3, 3]
-    w_levels: list[Tensor] = []  # posed joint positions per level [B, L, 3]
-    for depth, (ids, local) in enumerate(levels):
-        idx = torch.as_tensor(ids, device=joints.device)
-        R = rotations[:, idx]  # [B, L, 3, 3]
-        if depth == 0:
-            A, w = R, joints[:, idx]
-        else:
-            loc = torch.as_tensor(local, device=joints.device)
-            A_p, w_p = A_levels[-1][:, loc], w_levels[-1][:, loc]  # [B, L, 3, 3], [B, L, 3]
-            A = A_p @ R
-            w = w_p + (A_p @ offsets[:, idx].unsqueeze(-1)).squeeze(-1)
-        order.extend(ids)
-        A_levels.append(A)
-        w_levels.append(w)
-    inverse = torch.empty(J, dtype=torch.long)
-    inverse[torch.as_tensor(order)] = torch.arange(J)
-    inverse = inverse.to(joints.device)
-    A = torch.cat(A_levels, dim=1)[:, inverse]  # [B, J, 3, 3]
-    w = torch.cat(w_levels, dim=1)[:, inverse]  # [B, J, 3]
-    G = _rigid(A, w)  # [B, J, 4, 4]
-    T = _rigid(A, w - (A @ joints.unsqueeze(-1)).squeeze(-1))  # [B, J, 4, 4] = G @ translate(-j)
-    return G, T
+    key = tuple(int(p) for p in (parents.tolist() if isinstance(parents, Tensor) else parents))
+    if len(key) != J:
+        raise ValueError(f"parents has {len(key)} joints but pose has {J}.")
+    steps = _ancestor_steps(key)
+    dev, dtype = rotations.device, rotations.dtype
+    parent_rows = torch.as_tensor([p if p >= 0 else J for p in key] + [J], device=dev)  # [J + 1]
+    padded = torch.cat([joints, joints.new_zeros(B, 1, 3)], dim=1)  # [B, J + 1, 3], row J: the origin
+    offsets = padded - padded[:, parent_rows]  # [B, J + 1, 3] = j_k - j_parent (j_root at the root, 0 in row J)
+    eye = torch.eye(3, dtype=dtype, device=dev).expand(B, 1, 3, 3)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=dev).expand(B, J + 1, 1, 4)
+    top = torch.cat([torch.cat([rotations, eye], dim=1), offsets.unsqueeze(-1)], dim=-1)  # [B, J + 1, 3, 4]
+    A = torch.cat([top, bottom], dim=-2)  # [B, J + 1, 4, 4] local transforms; row J: the identity
+    for ancestor in steps:
+        A = A[:, torch.as_tensor(ancestor, device=dev)] @ A  # relative to the next 2^s ancestors up
+    G = A[:, :J]  # [B, J, 4, 4]
+    to_rest = torch.cat([torch.cat([eye.expand(B, J, 3, 3), -joints.unsqueeze(-1)], dim=-1), bottom[:, :J]], dim=-2)
+    return G, G @ to_rest  # T = G @ translate(-j)
 
 
 def forward_kinematics(pose: Tensor, joints: Tensor, parents: Tensor | list[int]) -> tuple[Tensor, Tensor]:
