@@ -59,3 +59,32 @@ def test_corrector_flops_match_the_layer_sizes(tool, avatar) -> None:
     expected = 2 * (n * (F * H + (c.num_layers - 2) * H * H + H * O) + P * H) / 1e9
     pose_features = torch.zeros(P)
     assert tool.corrector_gflop(avatar, pose_features) == pytest.approx(expected, rel=1e-9)
+
+
+def test_fixed_and_slope_fit_recovers_a_line(tool) -> None:
+    """The least-squares fit against closed forms: points on t = 3 + 0.002 n give exactly (3, 0.002); four noisy
+    points give the slope and intercept worked out by hand."""
+    counts = [5000, 2500, 1250, 100]
+    fixed, slope = tool.fit_fixed_and_slope(counts, [3.0 + 0.002 * c for c in counts])
+    assert fixed == pytest.approx(3.0, abs=1e-9) and slope == pytest.approx(0.002, rel=1e-9)
+    fixed, slope = tool.fit_fixed_and_slope([0, 1, 2, 3], [1.1, 1.9, 3.1, 3.9])
+    assert fixed == pytest.approx(1.06) and slope == pytest.approx(0.96)  # by hand: cov 4.8, var 5
+
+
+def test_subset_avatar_keeps_gaussians_and_corrected_rows(tool, avatar) -> None:
+    """A subset renders the chosen Gaussians of the original: count, parameters and a partially folded corrector's
+    rows renumbered to them (each kept row still points at the same Gaussian)."""
+    import copy
+
+    full = copy.deepcopy(avatar)
+    n = full.gaussians.num
+    full.corrector.active_rows = torch.arange(0, n, 3)  # every third Gaussian still corrected
+    sub = tool.subset_avatar(full, 100, seed=1)
+    assert sub.gaussians.num == 100 and full.gaussians.num == n  # the original is untouched
+    means_full, means_sub = full.gaussians.params["means"], sub.gaussians.params["means"]
+    index = [int((means_full == m).all(-1).nonzero()[0]) for m in means_sub]  # each kept Gaussian's original row
+    assert len(set(index)) == 100
+    corrected = {i for i in range(n) if i % 3 == 0}
+    rows = sub.corrector.active_rows.tolist()
+    assert rows and all(index[r] in corrected for r in rows)
+    assert len(rows) == sum(i in corrected for i in index)

@@ -14,6 +14,11 @@ is over those frames, so the parts add up to about, not exactly, the novel-pose 
 and a last line bounds the novel-pose / novel-view ratio from below on this machine: the novel-view frame plus F_a's
 forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
 (`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
+
+`--scaling` times the same parts on random subsets of the avatar's Gaussians (all, 1/2, 1/4, 1/50; a partially folded
+corrector keeps its rows among them) and fits each part as fixed + per-Gaussian cost (least squares). The fixed part
+is what a frame costs however small the model: it bounds how much faster a pruned model can render (a model with
+fewer Gaussians saves only the per-Gaussian part).
 Without --ckpt, Gaussians are sampled on the body surface and the paper's latent corrector is used as initialised.
 """
 
@@ -130,6 +135,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--scaling", action="store_true", help="fit each part as fixed + per-Gaussian cost")
     args = ap.parse_args()
     load_plugins()
     avatar = trained_avatar(args.ckpt, args.device) if args.ckpt else synthetic_avatar(args.body, args.num, args.device)
@@ -167,6 +173,8 @@ def main() -> None:
     report: dict = {"num_gaussians": n, "resolution": res, "device": args.device, "results": records}
     if view_ms:
         report["pose_path"] = pose_path_report(avatar, view_ms, cams, poses, args)
+        if args.scaling:
+            report["scaling"] = scaling_report(avatar, next(iter(view_ms)), cams, poses, args)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
@@ -202,6 +210,74 @@ def pose_path_report(
         "backend": name, "parts_ms": parts, "novel_view_ms": view, "corrector_gflop": gflop,
         "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
     }  # fmt: skip
+
+
+SCALING_FRACTIONS = (1.0, 0.5, 0.25, 0.02)
+
+
+def subset_avatar(avatar: Avatar, count: int, seed: int = 0) -> Avatar:
+    """A copy of `avatar` with `count` of its Gaussians, drawn at random (so the subset covers the body as the whole
+    model does); a partially folded corrector keeps its rows among them (`framework.model.pruning.prune_gaussians`)."""
+    import copy
+
+    from framework.model.pruning import prune_gaussians
+
+    sub = copy.deepcopy(avatar)
+    n = sub.gaussians.num
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
+    keep = torch.zeros(n, dtype=torch.bool)
+    keep[order[: max(1, min(count, n))]] = True
+    rows = getattr(sub.corrector, "active_rows", None)
+    if rows is not None and rows.numel() and not bool(keep.to(rows.device)[rows].any()):
+        keep[rows[0].cpu()] = True  # at least one corrected row stays, or the corrector would have nothing to run on
+    prune_gaussians(sub.gaussians, keep.to(sub.gaussians.params["means"].device), sub.corrector)
+    sub._posed_cache = None
+    return sub
+
+
+def fit_fixed_and_slope(counts: list[int], ms: list[float]) -> tuple[float, float]:
+    """Least-squares line ms = fixed + slope * count -> (fixed ms, ms per Gaussian)."""
+    n = len(counts)
+    mean_c, mean_t = sum(counts) / n, sum(ms) / n
+    var = sum((c - mean_c) ** 2 for c in counts)
+    slope = sum((c - mean_c) * (t - mean_t) for c, t in zip(counts, ms, strict=True)) / var if var else 0.0
+    return mean_t - slope * mean_c, slope
+
+
+def scaling_report(avatar: Avatar, name: str, cams: Cameras, poses: torch.Tensor, args: argparse.Namespace) -> dict:
+    """Print (and return) each part of the novel-pose frame as fixed + per-Gaussian cost, from subsets of the model."""
+    res, dev = args.resolution, args.device
+    batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
+    n = avatar.gaussians.num
+    counts = sorted({max(2, round(f * n)) for f in SCALING_FRACTIONS}, reverse=True)
+    subsets = {c: subset_avatar(avatar, c) for c in counts}
+    for sub in subsets.values():
+        sub.rasterizer = RASTERIZERS.build(name)
+    rounds = 3  # interleaved: a drifting machine speed moves every subset alike
+    samples: dict[int, list[dict[str, float]]] = {c: [] for c in counts}
+    for _ in range(rounds):
+        for c in counts:
+            samples[c].append(pose_frame_parts(subsets[c], batches, args.warmup, dev))
+    parts = {c: {k: statistics.median(s[k] for s in samples[c]) for k in POSE_PARTS} for c in counts}
+    rows, fits = [], {}
+    for k in (*POSE_PARTS, "whole frame"):
+        ms = [sum(parts[c].values()) if k == "whole frame" else parts[c][k] for c in counts]
+        fixed, slope = fit_fixed_and_slope(counts, ms)
+        fits[k] = {"fixed_ms": fixed, "ms_per_1000": slope * 1e3, "ms": dict(zip(counts, ms, strict=True))}
+        rows.append((k, *(f"{t:.2f}" for t in ms), f"{fixed:.2f}", f"{slope * 1e3:.3f}"))
+    print(
+        f"\nNovel-pose frame of {name} on random subsets of the {n} Gaussians (medians of {rounds} interleaved rounds "
+        f"of {args.repeats} frames, ms), fitted as fixed + per-Gaussian cost:\n"
+    )
+    print(format_table(rows, ("part", *(f"N={c}" for c in counts), "fixed ms", "ms per 1000 Gaussians")))
+    whole = fits["whole frame"]
+    full_ms = whole["ms"][counts[0]]
+    half_ms = full_ms - 0.5 * counts[0] * whole["ms_per_1000"] / 1e3  # the same frame with half the Gaussians
+    print(
+        f"\nFixed cost: {whole['fixed_ms']:.1f} of {full_ms:.1f} ms at N={counts[0]}; a model with half the Gaussians "
+        f"renders about {full_ms / half_ms:.2f}x faster on this machine, all else equal."
+    )
+    return {"backend": name, "counts": counts, "fits": fits}
 
 
 if __name__ == "__main__":
