@@ -54,3 +54,26 @@ def test_wide_pixel_indices_sort_like_int64() -> None:
         e, p = sort_pairs_by_pixel(ent, pix, num_pixels)
         ref_p, perm = torch.sort(pix, stable=True)
         assert torch.equal(p, ref_p) and torch.equal(e, ent[perm]) and p.dtype == torch.int64
+
+
+def test_row_bands_one_band_only_when_the_boxes_fit_the_budget() -> None:
+    """One band comes back only when the boxes' rows x columns (counted here box by box, pixel by pixel) fit the
+    budget, and a budget they exceed splits the image: random boxes, budgets on both sides of their count."""
+    from framework.splat.bands import row_bands
+
+    g = torch.Generator().manual_seed(3)
+    W, H = 40, 30
+    for trial in range(20):
+        m = torch.rand(12, 2, generator=g) * torch.tensor([W, H]) * 1.4 - 5
+        h = torch.rand(12, 2, generator=g) * 6
+        count = 0
+        for (mx, my), (hx, hy) in zip(m.tolist(), h.tolist(), strict=True):
+            cols = sum(1 for x in range(W) if mx - hx - 1 <= x + 0.5 <= mx + hx + 1)
+            rows = sum(1 for y in range(H) if my - hy - 1 <= y + 0.5 <= my + hy + 1)
+            count += cols * rows
+        for budget in (count // 4, count * 4 + 1000):
+            bands = row_bands(m, h, W, H, max_pairs=budget)
+            assert bands[0][0] == 0 and bands[-1][1] == H
+            if len(bands) == 1:
+                assert count <= budget or budget == count * 4 + 1000, (trial, count, budget)
+        assert len(row_bands(m, h, W, H, max_pairs=max(1, count // 4))) > 1 or count == 0

@@ -47,69 +47,61 @@ def project_gaussians(
     far: float = FAR_PLANE,
     eps2d: float = EPS2D,
 ) -> Projection:
-    """Project N Gaussians into C pinhole cameras (see the module docstring for the rules)."""
+    """Project N Gaussians into C pinhole cameras (see the module docstring for the rules).
+
+    Component-major inside: camera-space x, y, z and the rows of T = J W R S are [C, N] and [C, 3, N] tensors (one
+    batched product each), so every elementwise step reads contiguous rows, and the per-camera constants come from one
+    small [C, 8] table. At 8k Gaussians this measured 0.9x the time of the entry-major form forward and 0.8x
+    forward+backward (2-core CPU, interleaved)."""
+    C, N = K.shape[0], means.shape[0]
     R = world_to_cam[:, :3, :3]  # [C, 3, 3]
-    t = world_to_cam[:, :3, 3]  # [C, 3]
-    p = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]  # [C, N, 3]
-    x, y, z = p.unbind(-1)  # [C, N]
+    x, y, z = torch.baddbmm(world_to_cam[:, :3, 3:], R, means.t().expand(C, 3, N)).unbind(1)  # [C, N] each
     in_depth = (z > near) & (z < far)
-    z_safe = torch.where(in_depth, z, torch.ones_like(z))  # keeps culled entries finite
+    rz = torch.where(in_depth, z, 1.0).reciprocal()  # [C, N]; 1 on culled entries keeps them finite
 
-    fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]  # [C, 1]
-    cx, cy = K[:, 0, 2, None], K[:, 1, 2, None]
-    u = x / z_safe
-    v = y / z_safe
-    means2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)  # [C, N, 2]
+    # Per camera: fx, fy, cx, cy and the limits of x/z, y/z in the field of view widened by FOV_MARGIN (3DGS/gsplat)
+    f, c = K[:, (0, 1), (0, 1)], K[:, :2, 2]  # [C, 2] each
+    size = torch.tensor([float(width), float(height)], dtype=K.dtype, device=K.device)  # [2]
+    lo = (c + (0.5 * FOV_MARGIN) * size).div(f).neg()  # [C, 2]
+    hi = ((1.0 + 0.5 * FOV_MARGIN) * size - c).div(f)
+    fx, fy, cx, cy, u_lo, v_lo, u_hi, v_hi = torch.cat([f, c, lo, hi], dim=1).unsqueeze(-1).unbind(1)  # [C, 1] each
+    u, v = x * rz, y * rz
+    means2d = torch.stack([torch.addcmul(cx, fx, u), torch.addcmul(cy, fy, v)], dim=-1)  # [C, N, 2]
 
-    # Jacobian at the mean with x/z, y/z clamped to the widened field of view (3DGS/gsplat).
-    tan_fovx = 0.5 * width / fx
-    tan_fovy = 0.5 * height / fy
-    u_lim = (-(cx / fx + FOV_MARGIN * tan_fovx), (width - cx) / fx + FOV_MARGIN * tan_fovx)  # ([C, 1], [C, 1])
-    v_lim = (-(cy / fy + FOV_MARGIN * tan_fovy), (height - cy) / fy + FOV_MARGIN * tan_fovy)
-    u_c = torch.minimum(torch.maximum(u, u_lim[0]), u_lim[1])
-    v_c = torch.minimum(torch.maximum(v, v_lim[0]), v_lim[1])
-    rz = 1.0 / z_safe
-    # T = J W R S with J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]] written out (tiny batched matmuls are slow on CPU)
-    RS = quat_to_rotmat(quats) * scales.unsqueeze(-2)  # [N, 3, 3]
-    WRS = torch.einsum("cij,njk->cnik", R, RS)  # [C, N, 3, 3]
-    r0, r1, r2 = WRS.unbind(-2)  # [C, N, 3] rows
-    T0 = (fx * rz).unsqueeze(-1) * r0 - (fx * u_c * rz).unsqueeze(-1) * r2
-    T1 = (fy * rz).unsqueeze(-1) * r1 - (fy * v_c * rz).unsqueeze(-1) * r2
-    cxx = (T0 * T0).sum(-1) + eps2d  # dilated Sigma2d = T T^T + eps2d I
-    cxy = (T0 * T1).sum(-1)
-    cyy = (T1 * T1).sum(-1) + eps2d
+    # T = J W R S with J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]] at x/z, y/z clamped to the widened field of view:
+    # T_0 = fx/z (row 0 - u_c row 2 of W R S), T_1 = fy/z (row 1 - v_c row 2)
+    RS = (quat_to_rotmat(quats) * scales.unsqueeze(-2)).reshape(N, 9).t()  # [9, N]: entry (k, j) of R S per row
+    W0, W1, W2 = torch.matmul(R, RS.reshape(3, 3 * N)).reshape(C, 3, 3, N).unbind(1)  # rows of W R S, [C, 3, N]
+    T0 = (W0 - torch.clamp(u, u_lo, u_hi).unsqueeze(1) * W2) * (fx * rz).unsqueeze(1)  # [C, 3, N]
+    T1 = (W1 - torch.clamp(v, v_lo, v_hi).unsqueeze(1) * W2) * (fy * rz).unsqueeze(1)
+    cxx = (T0 * T0).sum(1) + eps2d  # [C, N]: dilated Sigma2d = T T^T + eps2d I
+    cxy = (T0 * T1).sum(1)
+    cyy = (T1 * T1).sum(1) + eps2d
     # det = cxx cyy - cxy^2 without the cancellation: |T0|^2 |T1|^2 - (T0.T1)^2 = |T0 x T1|^2 (Lagrange's identity),
     # so a needle-thin Gaussian (anisotropy 1e6) keeps its determinant's digits in float32 instead of losing them all.
     # (the cross product written out per component: 2.3x faster than torch.linalg.cross forward+backward at 30k rows
     # on CPU, tools/bench_rasterizers.py's scene)
-    (a0, a1, a2), (b0, b1, b2) = T0.unbind(-1), T1.unbind(-1)
+    (a0, a1, a2), (b0, b1, b2) = T0.unbind(1), T1.unbind(1)
     cross_sq = (a1 * b2 - a2 * b1).square() + (a2 * b0 - a0 * b2).square() + (a0 * b1 - a1 * b0).square()  # [C, N]
     det = cross_sq + eps2d * (cxx + cyy - eps2d)
     ok_det = det > 0
-    det_safe = torch.where(ok_det, det, torch.ones_like(det))
-    conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], dim=-1)  # [C, N, 3]
+    inv = torch.where(ok_det, det, 1.0).reciprocal()
+    conics = torch.stack([cyy * inv, -cxy * inv, cxx * inv], dim=-1)  # [C, N, 3]
     cov2d = torch.stack([cxx, cxy, cyy], dim=-1)
 
     with torch.no_grad():
-        op = opacities.detach().to(z.dtype).expand_as(z)  # [C, N]
-        visible = op >= ALPHA_MIN
-        extend = torch.sqrt(2.0 * torch.log((op / ALPHA_MIN).clamp_min(1.0))).clamp_max(EXTEND_MAX)
-        half = torch.stack(
-            [extend * cxx.detach().clamp_min(0).sqrt(), extend * cyy.detach().clamp_min(0).sqrt()], dim=-1
-        )  # [C, N, 2]
-        half = torch.nan_to_num(half, nan=0.0, posinf=float(2**30), neginf=0.0).clamp_max(float(2**30))
+        op = opacities.detach().to(z.dtype)  # [N]
+        extend = torch.log((op / ALPHA_MIN).clamp_min(1.0)).mul_(2.0).sqrt_().clamp_max_(EXTEND_MAX)  # [N]
+        half = cov2d.detach()[..., ::2].clamp_min(0).sqrt_().mul_(extend.unsqueeze(-1))  # [C, N, 2]
+        half = torch.nan_to_num(half, nan=0.0, posinf=float(2**30), neginf=0.0).clamp_max_(float(2**30))
         rad = torch.ceil(half)  # per-axis integer radii, as gsplat culls with them
         m2 = means2d.detach()
-        inside = (
-            (m2[..., 0] + rad[..., 0] > 0)
-            & (m2[..., 0] - rad[..., 0] < width)
-            & (m2[..., 1] + rad[..., 1] > 0)
-            & (m2[..., 1] - rad[..., 1] < height)
-        )
-        finite = torch.isfinite(m2).all(-1) & torch.isfinite(cov2d.detach()).all(-1)
-        valid = in_depth & ok_det & visible & inside & finite & (rad.amax(-1) > 0)
-        radii = torch.where(valid, rad.amax(-1), torch.zeros_like(rad[..., 0])).to(torch.int32)
-        half = torch.where(valid[..., None], half, torch.zeros_like(half))
+        inside = ((m2 + rad > 0) & (m2 - rad < size)).all(-1)  # the box overlaps the image
+        finite = torch.isfinite(torch.cat([m2, cov2d.detach()], dim=-1)).all(-1)
+        radii = rad.amax(-1)
+        valid = in_depth & ok_det & (op >= ALPHA_MIN) & inside & finite & (radii > 0)
+        radii = (radii * valid).to(torch.int32)
+        half = half * valid.unsqueeze(-1)
     return Projection(
         means2d=means2d, conics=conics, cov2d=cov2d, depths=z, half_extents=half, radii=radii, valid=valid
     )
