@@ -19,6 +19,7 @@ forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measur
 corrector keeps its rows among them) and fits each part as fixed + per-Gaussian cost (least squares). The fixed part
 is what a frame costs however small the model: it bounds how much faster a pruned model can render (a model with
 fewer Gaussians saves only the per-Gaussian part).
+
 Without --ckpt, Gaussians are sampled on the body surface and the paper's latent corrector is used as initialised.
 """
 
