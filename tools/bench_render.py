@@ -251,9 +251,7 @@ def scaling_report(avatar: Avatar, name: str, cams: Cameras, poses: torch.Tensor
     batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
     n = avatar.gaussians.num
     counts = sorted({max(2, round(f * n)) for f in SCALING_FRACTIONS}, reverse=True)
-    subsets = {c: subset_avatar(avatar, c) for c in counts}
-    for sub in subsets.values():
-        sub.rasterizer = RASTERIZERS.build(name)
+    subsets = {c: subset_avatar(avatar, c) for c in counts}  # copies carry the rasterizer `name` set above
     rounds = 3  # interleaved: a drifting machine speed moves every subset alike
     samples: dict[int, list[dict[str, float]]] = {c: [] for c in counts}
     for _ in range(rounds):
