@@ -178,3 +178,36 @@ def test_identity_deformer_and_errors(body):
         d(g, torch.eye(4).repeat(3, 1, 1))
     with pytest.raises(ValueError, match="identity"):
         REGISTRIES["deformer"].build("lbs").bind(None, None)
+
+
+def test_baked_weights_match_a_float64_svd_reference(body):
+    """Baked weights where most rows hang on one bone (some with a weight below 1, one negative, one bone stretched):
+    every posed attribute must match LBS computed row by row in float64 with the rotation from an SVD."""
+    g = canonical(body, 240, seed=3)
+    J = body.num_joints
+    gen = torch.Generator().manual_seed(5)
+    T = body.bone_transforms(torch.randn(1, J, 3, generator=gen) * 0.8)[0]  # [J, 4, 4]
+    T[2, :3, :3] *= torch.tensor([1.3, 0.8, 1.1])  # one bone with a stretch, so S is not the identity there
+    w = torch.zeros(g.num, J)
+    bones = torch.randint(0, J, (g.num,), generator=gen)
+    w[torch.arange(g.num), bones] = 1.0
+    w[:40, (bones[:40] + 1) % J] = 0.3  # 40 blended rows
+    w[40:50] *= 0.7  # single bone, weight 0.7: A = 0.7 A_k, whose rotation is still the bone's
+    w[50, bones[50]] = -1.0  # single negative weight: a reflection, not a rigid row
+    out = make("lbs", body)(g.replace(skin_weights=w), T).posed
+
+    w64, T64 = w.double(), T.double()
+    P = torch.einsum("nj,jab->nab", w64, T64[:, :3, :])  # [N, 3, 4]
+    A, t = P[:, :, :3], P[:, :, 3]
+    U, _, Vh = torch.linalg.svd(A)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    R = U @ torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)) @ Vh  # closest rotation
+    S = R.mT @ A
+    axes = quat_to_rotmat(g.quats.double())
+    k = torch.einsum("nil,nij,njl->nl", axes, 0.5 * (S + S.mT), axes)
+    torch.testing.assert_close(out.means.double(), (A @ g.means.double().unsqueeze(-1)).squeeze(-1) + t,
+                               atol=2e-5, rtol=0)  # fmt: skip
+    torch.testing.assert_close(quat_to_rotmat(out.quats).double(), R @ axes, atol=2e-5, rtol=0)
+    ok = k > 1e-6  # the negative row's stretch is clamped at the floor
+    torch.testing.assert_close(out.log_scales.double()[ok], (g.log_scales.double() + torch.log(k))[ok], atol=2e-5,
+                               rtol=0)  # fmt: skip

@@ -21,9 +21,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from framework.geometry import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from framework.geometry import (
+    products_3x3,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotmat,
+    quat_to_rotmat_entry_major,
+    rotmat_to_quat_entry_major,
+)
 from framework.guards import LBS_MIN_STRETCH, WEIGHT_VAR_MIN
-from framework.rig.polar import polar_decompose
+from framework.rig.polar import polar_rotation_entry_major
 from framework.rig.sh_rotation import rotate_sh
 from framework.types import Gaussians
 
@@ -33,15 +40,25 @@ CENTRE_MODES = ("blended", "rigid")
 
 
 def blended_affine(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
-    """weights [N, J], transforms [J, 4, 4] -> A [N, 3, 3], t [N, 3] of P_i = sum_k w_ik P_k."""
+    """weights [N, J], transforms [J, 4, 4] -> A [3, 3, N], t [3, N] of P_i = sum_k w_ik P_k, entry-major.
+
+    Why entry-major: each later step (the polar iteration, the products with the Gaussians' means and axes) is then
+    a few vector operations over N contiguous values, where [N, 3, 3] batches run N tiny 3x3 products."""
     J = transforms.shape[0]
     if weights.shape[-1] != J:
         raise ValueError(
             f"lbs: blend weights have {weights.shape[-1]} joints but bone_transforms has {J}; the deformer must be "
             "bound to the body whose transforms it receives."
         )
-    P = (weights @ transforms[:, :3, :].reshape(J, 12).to(weights.dtype)).reshape(-1, 3, 4)  # [N, 3, 4]
-    return P[:, :, :3], P[:, :, 3]
+    P = (transforms[:, :3, :].reshape(J, 12).t().to(weights.dtype) @ weights.t()).view(3, 4, -1)  # [3, 4, N]
+    return P[:, :3], P[:, 3]
+
+
+def _rotations(A: Tensor, dtype: torch.dtype | None) -> tuple[Tensor, Tensor]:
+    """A [3, 3, N] -> R [3, 3, N] of A = R S and its quaternions [4, N]."""
+    N = A.shape[-1]
+    R = polar_rotation_entry_major(A.reshape(9, N), dtype)  # [9, N]
+    return R.view(3, 3, N), rotmat_to_quat_entry_major(R)
 
 
 def apply_lbs(
@@ -74,18 +91,20 @@ def lbs_with_sh_frames(
         raise ValueError(f"lbs: stretch must be one of {STRETCH_MODES}, got '{stretch}'.")
     if centres not in CENTRE_MODES:
         raise ValueError(f"lbs: centres must be one of {CENTRE_MODES}, got '{centres}'.")
-    A, t = blended_affine(weights, transforms)
-    R, S = polar_decompose(A, None if polar_dtype is None else torch.promote_types(A.dtype, polar_dtype))  # [N, 3, 3]
+    A, t = blended_affine(weights, transforms)  # [3, 3, N], [3, N]
+    R, qR = _rotations(A, None if polar_dtype is None else torch.promote_types(A.dtype, polar_dtype))
     moves = A if centres == "blended" else R
-    means = (moves @ gaussians.means.unsqueeze(-1)).squeeze(-1) + t
+    means = ((moves * gaussians.means.t().unsqueeze(0)).sum(1) + t).t().contiguous()  # [N, 3]
+    q = gaussians.quats.t().contiguous()  # [4, N]
     # normalised first: a quaternion below NORM_EPS means the identity, and the product must still turn with R
-    quats = quat_multiply(rotmat_to_quat(R), quat_normalize(gaussians.quats))
+    quats = quat_multiply(qR, quat_normalize(q, dim=0), dim=0).t().contiguous()  # [N, 4]
     log_scales = gaussians.log_scales
     if stretch == "diag":
-        Q = quat_to_rotmat(gaussians.quats)  # [N, 3, 3], columns = the Gaussian's axes
-        k = ((S @ Q) * Q).sum(-2)  # [N, 3] = a_l^T S a_l
-        log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH))
-    return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R
+        Q = quat_to_rotmat_entry_major(q).view(3, 3, -1)  # [3, 3, N], columns = the Gaussian's axes
+        # k_l = a_l^T S a_l with S = sym(R^T A): a quadratic form sees only the symmetric part, so R^T A will do
+        k = (Q * products_3x3(products_3x3(R, A, transpose_x=True), Q)).sum(0)  # [3, N]
+        log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH)).t()  # [N, 3]
+    return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R.permute(2, 0, 1)
 
 
 def six_points(gaussians: Gaussians) -> Tensor:

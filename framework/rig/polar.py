@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.geometry import products_3x3
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
 
 _NEWTON_MAX_ITERS = 30
@@ -64,18 +65,6 @@ def _cofactors(X: Tensor) -> Tensor:
     One gather of the 36 factor rows and one fused multiply-subtract, instead of 27 products on single entries."""
     Y = X.index_select(0, _COFACTOR_INDEX.to(X.device)).view(4, 9, -1)  # [4, 9, M]
     return torch.addcmul(Y[0] * Y[1], Y[2], Y[3], value=-1.0)
-
-
-def _skew(v: Tensor) -> Tensor:
-    """[..., 3] -> [..., 3, 3] with skew(v) @ x = v x x."""
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape, 3)
-
-
-def _vee(K: Tensor) -> Tensor:
-    """Inverse of `_skew` on the skew part's lower entries: (K21, K02, K10) [..., 3]."""
-    return torch.stack([K[..., 2, 1], K[..., 0, 2], K[..., 1, 0]], dim=-1)
 
 
 def _rotation_svd(A: Tensor) -> Tensor:
@@ -117,40 +106,49 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     det <= 0 or nearly singular inputs; method="svd": float64 SVD for every matrix (the reference). Both agree to
     ~1e-14 in float64 and ~1e-6 with a float32 iteration.
     """
-    if method not in ("svd", "newton"):
-        raise ValueError(f"polar: method must be 'svd' or 'newton', got '{method}'.")
-    shape, out_dtype = A.shape, A.dtype
-    compute = dtype or torch.promote_types(A.dtype, torch.float32)
+    return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
+
+
+def _compute_dtype(X: Tensor, dtype: torch.dtype | None) -> torch.dtype:
+    compute = dtype or torch.promote_types(X.dtype, torch.float32)
     if compute not in (torch.float32, torch.float64):
         raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
-    Ac = A.detach().reshape(-1, 3, 3).to(torch.float64 if method == "svd" else compute)
-    M = Ac.shape[0]
+    return compute
+
+
+@torch.no_grad()
+def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
+    """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
+    if method not in ("svd", "newton"):
+        raise ValueError(f"polar: method must be 'svd' or 'newton', got '{method}'.")
+    out_dtype, M = X.dtype, X.shape[1]
+    compute = _compute_dtype(X, dtype)
+    Xc = X.to(torch.float64 if method == "svd" else compute).contiguous()  # [9, M]
     if M == 0:
-        return torch.empty(shape, dtype=out_dtype, device=A.device)
-    if not bool(torch.isfinite(Ac.sum())):  # one reduction: NaN and inf propagate (an overflow only costs the check)
-        finite = torch.isfinite(Ac).flatten(1).all(1)
-        Ac = torch.where(finite[:, None, None], Ac, torch.eye(3, dtype=Ac.dtype, device=Ac.device).expand_as(Ac))
+        return torch.empty_like(X)
+    if not bool(torch.isfinite(Xc.sum())):  # one reduction: NaN and inf propagate (an overflow only costs the check)
+        eye = torch.eye(3, dtype=Xc.dtype, device=Xc.device).reshape(9, 1)
+        Xc = torch.where(torch.isfinite(Xc).all(0), Xc, eye)
     if method == "svd":
-        return _rotation_svd(Ac).reshape(shape).to(out_dtype)
-    X = Ac.reshape(M, 9).t().contiguous()  # [9, M] entry-major
-    C = _cofactors(X)  # [9, M]
-    det = (X[:3] * C[:3]).sum(0)  # [M]
-    norm_sq = X.square().sum(0)  # [M]
+        return _rotation_svd(Xc.t().reshape(-1, 3, 3)).reshape(M, 9).t().to(out_dtype)
+    C = _cofactors(Xc)  # [9, M]
+    det = (Xc[:3] * C[:3]).sum(0)  # [M]
+    norm_sq = Xc.square().sum(0)  # [M]
     mean_sq = norm_sq / 3
     good = det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()  # det > tol * scale^3
     if bool(good.all()):  # the common case: one pass, no boolean indexing
-        return _rotation_newton(X, C, det, norm_sq).t().reshape(shape).to(out_dtype)
-    R = torch.empty_like(Ac)
+        return _rotation_newton(Xc, C, det, norm_sq).to(out_dtype)
+    R = torch.empty_like(Xc)
     if good.any():
-        R[good] = _rotation_newton(X[:, good], C[:, good], det[good], norm_sq[good]).t().reshape(-1, 3, 3)
-    R[~good] = _rotation_svd(Ac[~good].double()).to(R.dtype)
-    return R.reshape(shape).to(out_dtype)
+        R[:, good] = _rotation_newton(Xc[:, good], C[:, good], det[good], norm_sq[good])
+    bad = Xc[:, ~good].t().reshape(-1, 3, 3).double()
+    R[:, ~good] = _rotation_svd(bad).reshape(-1, 9).t().to(R.dtype)
+    return R.to(out_dtype)
 
 
 def _solve_sym3(M: Tensor, b: Tensor) -> Tensor:
-    """x = M^-1 b for symmetric positive definite M [..., 3, 3] and b [..., 3], by the adjugate (Cramer's rule)."""
-    m00, m01, m02 = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
-    m11, m12, m22 = M[..., 1, 1], M[..., 1, 2], M[..., 2, 2]
+    """x = M^-1 b for symmetric positive definite M [3, 3, K] and b [3, K], by the adjugate (Cramer's rule)."""
+    m00, m01, m02, m11, m12, m22 = M[0, 0], M[0, 1], M[0, 2], M[1, 1], M[1, 2], M[2, 2]
     c00 = m11 * m22 - m12 * m12  # cofactors (symmetric)
     c01 = m02 * m12 - m01 * m22
     c02 = m01 * m12 - m02 * m11
@@ -158,35 +156,56 @@ def _solve_sym3(M: Tensor, b: Tensor) -> Tensor:
     c12 = m01 * m02 - m00 * m12
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
-    b0, b1, b2 = b.unbind(-1)
+    b0, b1, b2 = b.unbind(0)
     x = torch.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2])
-    return (x / det).movedim(0, -1)
+    return x / det  # [3, K]
+
+
+def _skew_entry_major(v: Tensor) -> Tensor:
+    """[3, K] -> [3, 3, K] with skew(v) x = v x x."""
+    x, y, z = v.unbind(0)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o]).view(3, 3, -1)
 
 
 class _PolarRotation(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, A: Tensor, dtype: torch.dtype | None) -> Tensor:
-        R = polar_rotation_values(A, dtype=dtype)
-        ctx.save_for_backward(A, R)
+    def forward(ctx, X: Tensor, dtype: torch.dtype | None) -> Tensor:
+        R = _polar_values_entry_major(X, dtype=dtype)
+        ctx.save_for_backward(X, R)
         return R
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_R: Tensor) -> tuple[Tensor, None]:
-        A, R = ctx.saved_tensors
-        A64, R64, G = A.double(), R.double(), grad_R.double()
-        S = R64.transpose(-1, -2) @ A64
-        S = 0.5 * (S + S.transpose(-1, -2))
-        tr = S.diagonal(dim1=-2, dim2=-1).sum(-1)  # [...]
-        eye = torch.eye(3, dtype=S.dtype, device=S.device)
-        B = tr[..., None, None] * eye - S  # [..., 3, 3] symmetric
-        g = _vee(R64.transpose(-1, -2) @ G - G.transpose(-1, -2) @ R64)  # [..., 3]
-        d2 = (POLAR_TIKHONOV * tr.abs()) ** 2 + POLAR_DAMPING_FLOOR
-        h = _solve_sym3(B @ B + d2[..., None, None] * eye, (B @ g.unsqueeze(-1)).squeeze(-1))
-        grad_A = R64 @ _skew(h)
-        grad_A = torch.where(torch.isfinite(grad_A), grad_A, torch.zeros_like(grad_A))
-        big = torch.finfo(A.dtype).max  # half precision: saturate rather than overflow to inf
-        return grad_A.clamp(-big, big).to(A.dtype), None
+        X, R = ctx.saved_tensors
+        K = X.shape[1]
+        A64, R64, G = (t.double().reshape(3, 3, K) for t in (X, R, grad_R))
+        S = products_3x3(R64, A64, transpose_x=True)  # [3, 3, K] = R^T A
+        S = 0.5 * (S + S.transpose(0, 1))
+        tr = S[0, 0] + S[1, 1] + S[2, 2]  # [K]
+        eye = torch.eye(3, dtype=S.dtype, device=S.device).unsqueeze(-1)  # [3, 3, 1]
+        B = tr * eye - S  # [3, 3, K] symmetric
+        RtG = products_3x3(R64, G, transpose_x=True)  # [3, 3, K]
+        W = RtG - RtG.transpose(0, 1)
+        g = torch.stack([W[2, 1], W[0, 2], W[1, 0]])  # [3, K], vee of the skew part
+        d2 = (POLAR_TIKHONOV * tr.abs()) ** 2 + POLAR_DAMPING_FLOOR  # [K]
+        h = _solve_sym3(products_3x3(B, B) + d2 * eye, (B * g.unsqueeze(0)).sum(1))  # [3, K]
+        grad_X = products_3x3(R64, _skew_entry_major(h)).reshape(9, K)
+        grad_X = torch.where(torch.isfinite(grad_X), grad_X, torch.zeros_like(grad_X))
+        big = torch.finfo(X.dtype).max  # half precision: saturate rather than overflow to inf
+        return grad_X.clamp(-big, big).to(X.dtype), None
+
+
+def polar_rotation_entry_major(X: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+    """Rotation factors of entry-major matrices, X [9, M] (row 3i + j = entry (i, j)) -> R [9, M], differentiable
+    with the closed-form gradient.
+
+    Why this layout: every step of the iteration and of its gradient is then a contiguous vector operation over the
+    M matrices, where [M, 3, 3] batches run as many tiny 3x3 products."""
+    if X.dim() != 2 or X.shape[0] != 9:
+        raise ValueError(f"polar_rotation_entry_major: expected [9, M], got shape {tuple(X.shape)}.")
+    return _PolarRotation.apply(X, dtype)
 
 
 def polar_rotation(A: Tensor, dtype: torch.dtype | None = None) -> Tensor:
@@ -195,7 +214,7 @@ def polar_rotation(A: Tensor, dtype: torch.dtype | None = None) -> Tensor:
     `dtype`: the forward iteration's dtype (default A's, at least float32); the result has A's dtype."""
     if A.shape[-2:] != (3, 3):
         raise ValueError(f"polar_rotation: expected matrices [..., 3, 3], got shape {tuple(A.shape)}.")
-    return _PolarRotation.apply(A, dtype)
+    return polar_rotation_entry_major(A.reshape(-1, 9).t(), dtype).t().reshape(A.shape)
 
 
 def polar_decompose(A: Tensor, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
@@ -205,5 +224,10 @@ def polar_decompose(A: Tensor, dtype: torch.dtype | None = None) -> tuple[Tensor
     negative eigenvalue.
     """
     R = polar_rotation(A, dtype)
+    return R, symmetric_stretch(R, A)
+
+
+def symmetric_stretch(R: Tensor, A: Tensor) -> Tensor:
+    """S = R^T A symmetrised, [..., 3, 3]: the stretch of A = R S for R its (proper) polar rotation."""
     S = R.transpose(-1, -2) @ A
-    return R, 0.5 * (S + S.transpose(-1, -2))
+    return 0.5 * (S + S.transpose(-1, -2))

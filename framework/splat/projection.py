@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from framework.geometry import quat_to_rotmat
+from framework.geometry import quat_to_rotmat_entry_major
 from framework.splat.contract import ALPHA_MIN, EPS2D, FAR_PLANE, NEAR_PLANE
 
 EXTEND_MAX = 3.33
@@ -70,8 +70,8 @@ def project_gaussians(
 
     # T = J W R S with J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]] at x/z, y/z clamped to the widened field of view:
     # T_0 = fx/z (row 0 - u_c row 2 of W R S), T_1 = fy/z (row 1 - v_c row 2)
-    RS = (quat_to_rotmat(quats) * scales.unsqueeze(-2)).reshape(N, 9).t()  # [9, N]: entry (k, j) of R S per row
-    W0, W1, W2 = torch.matmul(R, RS.reshape(3, 3 * N)).reshape(C, 3, 3, N).unbind(1)  # rows of W R S, [C, 3, N]
+    RS = quat_to_rotmat_entry_major(quats.t()).view(3, 3, N) * scales.t().unsqueeze(0)  # [3, 3, N]: (R S)_kj per row
+    W0, W1, W2 = torch.matmul(R, RS.view(3, 3 * N)).reshape(C, 3, 3, N).unbind(1)  # rows of W R S, [C, 3, N]
     T0 = (W0 - torch.clamp(u, u_lo, u_hi).unsqueeze(1) * W2) * (fx * rz).unsqueeze(1)  # [C, 3, N]
     T1 = (W1 - torch.clamp(v, v_lo, v_hi).unsqueeze(1) * W2) * (fy * rz).unsqueeze(1)
     cxx = (T0 * T0).sum(1) + eps2d  # [C, N]: dilated Sigma2d = T T^T + eps2d I
