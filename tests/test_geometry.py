@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from framework.geometry import axis_angle_to_rotmat, quat_to_rotmat, rotmat_to_quat
+from framework.geometry import axis_angle_to_rotmat, quat_to_rotmat, quat_to_rotmat_entry_major, rotmat_to_quat
 
 
 def _rotmat_rodrigues(q: torch.Tensor) -> torch.Tensor:
@@ -30,6 +30,26 @@ def test_values_and_gradients_match_rodrigues() -> None:
     (g1,) = torch.autograd.grad((R * w).sum(), q)
     (g2,) = torch.autograd.grad((R_ref * w).sum(), q2)
     assert torch.allclose(g1, g2, atol=1e-11, rtol=1e-10)
+
+
+def test_entry_major_form_matches_rodrigues_with_zero_rows() -> None:
+    """[4, N] -> [9, N]: values and gradients against the Rodrigues construction (row-major, float64), with two zero
+    quaternions among them (the identity, with a zero gradient)."""
+    g = torch.Generator().manual_seed(2)
+    q = torch.randn(50, 4, generator=g, dtype=torch.float64) * 2
+    q[[3, 17]] = 0.0
+    q = q.requires_grad_()
+    q2 = q.detach().clone().requires_grad_()
+    w = torch.randn(50, 3, 3, generator=g, dtype=torch.float64)
+    R = quat_to_rotmat_entry_major(q.t())  # [9, N]
+    R_ref = torch.where(q2.detach().abs().sum(-1)[:, None, None] > 0, _rotmat_rodrigues(q2), torch.eye(3).double())
+    torch.testing.assert_close(R, R_ref.reshape(50, 9).t(), atol=1e-12, rtol=0)
+    (g1,) = torch.autograd.grad((R * w.reshape(50, 9).t()).sum(), q)
+    (g2,) = torch.autograd.grad((R_ref * w).sum(), q2)
+    torch.testing.assert_close(g1, torch.nan_to_num(g2), atol=1e-11, rtol=1e-10)
+    assert torch.equal(g1[[3, 17]], torch.zeros(2, 4, dtype=torch.float64))
+    some = q.detach()[:6].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: quat_to_rotmat_entry_major(x.t()), (some,))
 
 
 def test_gradcheck_and_batch_dims() -> None:

@@ -224,10 +224,5 @@ def polar_decompose(A: Tensor, dtype: torch.dtype | None = None) -> tuple[Tensor
     negative eigenvalue.
     """
     R = polar_rotation(A, dtype)
-    return R, symmetric_stretch(R, A)
-
-
-def symmetric_stretch(R: Tensor, A: Tensor) -> Tensor:
-    """S = R^T A symmetrised, [..., 3, 3]: the stretch of A = R S for R its (proper) polar rotation."""
     S = R.transpose(-1, -2) @ A
-    return 0.5 * (S + S.transpose(-1, -2))
+    return R, 0.5 * (S + S.transpose(-1, -2))
