@@ -142,7 +142,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
 
 def _argmax_of_four(v: Tensor) -> Tensor:
     """argmax over the first four rows of v [>= 4, M] (the first on ties) by three comparisons: torch's argmax over
-    four values took 0.9 ms at 8k columns in either layout, these six vector operations 0.06 ms (2-core CPU)."""
+    four values took 0.9 ms at 8k columns in either layout, these few vector operations 0.06 ms (2-core CPU)."""
     first, m01 = (v[1] > v[0]).long(), torch.maximum(v[0], v[1])
     second, m23 = (v[3] > v[2]).long() + 2, torch.maximum(v[2], v[3])
     return torch.where(m23 > m01, second, first)
