@@ -30,11 +30,20 @@ def avatar(tool):
     av = tool.synthetic_avatar("procedural", 400, "cpu").eval()
     for p in av.corrector.parameters():  # a corrector that changes something (its last layer starts at zero)
         torch.nn.init.normal_(p, std=0.05)
+    with torch.no_grad():  # view-dependent colour in every band (they start at zero), so each degree renders its own
+        av.gaussians.params["shN"].normal_(std=0.2)
     return av
 
 
-def test_written_out_pose_path_renders_the_avatars_image(tool, avatar) -> None:
-    """The parts the table times are Avatar.forward's novel-pose path: same image, every SH degree-3 term included."""
+@pytest.mark.parametrize("degree", [3, 1])
+def test_written_out_pose_path_renders_the_avatars_image(tool, avatar, degree) -> None:
+    """The parts the table times are Avatar.forward's novel-pose path: same image, every SH term of the model's degree
+    included. Degree 1 is a compact model's (`framework.export prune=true` drops negligible bands): it stores 4
+    coefficients, so a path that asked for degree 3 could not render it at all."""
+    import copy
+
+    from framework.model.pruning import drop_sh_bands
+
     body = avatar.body
     centre = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
     cams = orbit_cameras(centre, 3.0, 0.0, 4, 48, 48, fov_deg=40)
@@ -42,12 +51,19 @@ def test_written_out_pose_path_renders_the_avatars_image(tool, avatar) -> None:
     batch = tool.frame_batch(cams, pose, 1, 48, "cpu")
     calls = []
     with torch.no_grad():
-        parts = tool.pose_frame(avatar, batch, lambda: calls.append(1))
-        whole = avatar(batch, sh_degree=3).render
+        full_rgb = avatar(batch, sh_degree=3).render.rgb
+        if degree < 3:
+            avatar = copy.deepcopy(avatar)
+            drop_sh_bands(avatar.gaussians, degree)
+            assert avatar.gaussians.gaussians().sh.shape[1] == (degree + 1) ** 2
+        parts = tool.pose_frame(avatar, batch, degree, lambda: calls.append(1))
+        whole = avatar(batch, sh_degree=degree).render
     assert len(calls) == len(tool.POSE_PARTS)
     assert float(whole.alpha.amax()) > 0.5  # the body is in view
     torch.testing.assert_close(parts.rgb, whole.rgb, rtol=0, atol=1e-6)
     torch.testing.assert_close(parts.alpha, whole.alpha, rtol=0, atol=1e-6)
+    if degree < 3:  # the bands above `degree` are gone: the image differs from the degree-3 model's
+        assert float((whole.rgb - full_rgb).abs().amax()) > 1e-2
 
 
 def test_corrector_flops_match_the_layer_sizes(tool, avatar) -> None:

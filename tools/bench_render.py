@@ -41,12 +41,14 @@ from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.types import Cameras, FrameBatch, RenderOutput
 
+SYNTHETIC_SH_DEGREE = 3
+
 
 def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
     from framework.model.gaussian_init import from_body_surface
 
     body = BODIES.build(body_name)
-    g = from_body_surface(body, num=num, sh_degree=3, seed=0, opacity=0.8)
+    g = from_body_surface(body, num=num, sh_degree=SYNTHETIC_SH_DEGREE, seed=0, opacity=0.8)
     corrector = CORRECTORS.build("latent")
     corrector.bind(body.num_pose_features)
     deformer = DEFORMERS.build("lbs", grid_resolution=32)
@@ -56,12 +58,14 @@ def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
     return Avatar(GaussianParams(g), RASTERIZERS.build("torch_ref"), corrector, deformer, body).to(device)
 
 
-def trained_avatar(ckpt: str, device: str) -> Avatar:
+def trained_avatar(ckpt: str, device: str) -> tuple[Avatar, int]:
+    """The checkpoint's avatar with baked weights, and the SH degree its training had reached (the degree a viewer
+    renders it at: a compact model from `framework.export prune=true` may keep fewer bands than paper_full's 3)."""
     from framework.evaluate import load_module
 
     module = load_module(ckpt, map_location=device)
     module.bake_weights()
-    return module.avatar.to(device)
+    return module.avatar.to(device), module.sh_degree(module.trained_steps())
 
 
 def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:
@@ -76,18 +80,20 @@ def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str
 POSE_PARTS = ("bone transforms", "corrector F_a", "LBS (polar, skinning)", "view colour (SH at R^T d)", "rasterizer")
 
 
-def pose_frame(avatar: Avatar, batch: FrameBatch, mark: Callable[[], None] = lambda: None) -> RenderOutput:
+def pose_frame(
+    avatar: Avatar, batch: FrameBatch, sh_degree: int, mark: Callable[[], None] = lambda: None
+) -> RenderOutput:
     """`Avatar.forward`'s novel-pose path for one camera, written out part by part; `mark` is called after each of
     the `POSE_PARTS` (tests check that the image equals the avatar's own)."""
     transforms, pose_features = avatar.bone_transforms(batch)
     mark()
-    corrected = avatar.corrector(avatar.gaussians.gaussians(3), pose_features)
+    corrected = avatar.corrector(avatar.gaussians.gaussians(sh_degree), pose_features)
     mark()
     deformed = avatar.deformer(corrected, transforms, defer_sh=True)
     mark()
-    posed, sh, degree = deformed.posed, deformed.posed.sh, 3
+    posed, sh, degree = deformed.posed, deformed.posed.sh, sh_degree
     if deformed.sh_frames is not None:
-        sh, degree = avatar._view_colour(posed, deformed.sh_frames, batch, 3), 0
+        sh, degree = avatar._view_colour(posed, deformed.sh_frames, batch, sh_degree), 0
     mark()
     out = avatar.rasterizer.render(
         posed.means, posed.quats, torch.exp(posed.log_scales), torch.sigmoid(posed.opacity_logits), sh,
@@ -97,7 +103,9 @@ def pose_frame(avatar: Avatar, batch: FrameBatch, mark: Callable[[], None] = lam
     return out
 
 
-def pose_frame_parts(avatar: Avatar, batches: list[FrameBatch], warmup: int, device: str) -> dict[str, float]:
+def pose_frame_parts(
+    avatar: Avatar, batches: list[FrameBatch], sh_degree: int, warmup: int, device: str
+) -> dict[str, float]:
     """Median ms of each part of the novel-pose frame over `batches` (one new pose each) after `warmup` of them."""
     times: dict[str, list[float]] = {k: [] for k in POSE_PARTS}
     with torch.no_grad():
@@ -108,7 +116,7 @@ def pose_frame_parts(avatar: Avatar, batches: list[FrameBatch], warmup: int, dev
                 synchronize(device)
                 marks.append(time.perf_counter())
 
-            pose_frame(avatar, batch, mark)
+            pose_frame(avatar, batch, sh_degree, mark)
             if i >= warmup:
                 for k, a, b in zip(POSE_PARTS, marks[:-1], marks[1:], strict=True):
                     times[k].append((b - a) * 1e3)
@@ -139,7 +147,10 @@ def main() -> None:
     ap.add_argument("--scaling", action="store_true", help="fit each part as fixed + per-Gaussian cost")
     args = ap.parse_args()
     load_plugins()
-    avatar = trained_avatar(args.ckpt, args.device) if args.ckpt else synthetic_avatar(args.body, args.num, args.device)
+    if args.ckpt:
+        avatar, degree = trained_avatar(args.ckpt, args.device)
+    else:
+        avatar, degree = synthetic_avatar(args.body, args.num, args.device), SYNTHETIC_SH_DEGREE
     avatar.eval()
     body = avatar.body
     J = body.num_input_joints
@@ -160,7 +171,7 @@ def main() -> None:
 
         def frame(i: int, novel_pose: bool) -> None:
             pose = poses[i % len(poses) if novel_pose else 0][None]
-            avatar(frame_batch(cams, pose, i, res, args.device), sh_degree=3)
+            avatar(frame_batch(cams, pose, i, res, args.device), sh_degree=degree)
 
         with torch.no_grad():
             t_view = time_frames(lambda i: frame(i, False), args.warmup, args.repeats, args.device)
@@ -169,27 +180,34 @@ def main() -> None:
         rows.append((name, f"{1 / t_view:.1f}", f"{1 / t_pose:.1f}", ""))
         records.append({"backend": name, "novel_view_fps": 1 / t_view, "novel_pose_fps": 1 / t_pose})
     n = avatar.gaussians.num
-    print(f"\n{n} Gaussians, {res}x{res}, device {args.device}, {J} joints; medians of {args.repeats} frames\n")
+    where = f"{res}x{res}, device {args.device}, {J} joints"
+    print(f"\n{n} Gaussians, SH degree {degree}, {where}; medians of {args.repeats} frames\n")
     print(format_table(rows, ("backend", "novel-view fps", "novel-pose fps", "note")))
-    report: dict = {"num_gaussians": n, "resolution": res, "device": args.device, "results": records}
+    report: dict = {"num_gaussians": n, "sh_degree": degree, "resolution": res, "device": args.device}
+    report["results"] = records
     if view_ms:
-        report["pose_path"] = pose_path_report(avatar, view_ms, cams, poses, args)
+        report["pose_path"] = pose_path_report(avatar, degree, view_ms, cams, poses, args)
         if args.scaling:
-            report["scaling"] = scaling_report(avatar, next(iter(view_ms)), cams, poses, args)
+            report["scaling"] = scaling_report(avatar, degree, next(iter(view_ms)), cams, poses, args)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
 
 
 def pose_path_report(
-    avatar: Avatar, view_ms: dict[str, float], cams: Cameras, poses: torch.Tensor, args: argparse.Namespace
+    avatar: Avatar,
+    sh_degree: int,
+    view_ms: dict[str, float],
+    cams: Cameras,
+    poses: torch.Tensor,
+    args: argparse.Namespace,
 ) -> dict:
     """Print (and return) the novel-pose frame's parts for the first timed backend and the ratio's lower bound."""
     name = next(iter(view_ms))
     avatar.rasterizer = RASTERIZERS.build(name)
     res, dev = args.resolution, args.device
     batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
-    parts = pose_frame_parts(avatar, batches, args.warmup, dev)
+    parts = pose_frame_parts(avatar, batches, sh_degree, args.warmup, dev)
     pose_only = sum(v for k, v in parts.items() if k != "rasterizer")
     view = view_ms[name]
     print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms):\n")
@@ -245,7 +263,9 @@ def fit_fixed_and_slope(counts: list[int], ms: list[float]) -> tuple[float, floa
     return mean_t - slope * mean_c, slope
 
 
-def scaling_report(avatar: Avatar, name: str, cams: Cameras, poses: torch.Tensor, args: argparse.Namespace) -> dict:
+def scaling_report(
+    avatar: Avatar, sh_degree: int, name: str, cams: Cameras, poses: torch.Tensor, args: argparse.Namespace
+) -> dict:
     """Print (and return) each part of the novel-pose frame as fixed + per-Gaussian cost, from subsets of the model."""
     res, dev = args.resolution, args.device
     batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
@@ -256,7 +276,7 @@ def scaling_report(avatar: Avatar, name: str, cams: Cameras, poses: torch.Tensor
     samples: dict[int, list[dict[str, float]]] = {c: [] for c in counts}
     for _ in range(rounds):
         for c in counts:
-            samples[c].append(pose_frame_parts(subsets[c], batches, args.warmup, dev))
+            samples[c].append(pose_frame_parts(subsets[c], batches, sh_degree, args.warmup, dev))
     parts = {c: {k: statistics.median(s[k] for s in samples[c]) for k in POSE_PARTS} for c in counts}
     rows, fits = [], {}
     for k in (*POSE_PARTS, "whole frame"):
