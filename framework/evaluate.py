@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from framework.atomic import atomic_path, atomic_write_text
 from framework.build import build_component
 from framework.errors import SplatrigError, reported_as_message
+from framework.paths import beside_checkpoint
 from framework.plugins import format_table, load_plugins
 from framework.registry import METRICS
 
@@ -191,7 +192,7 @@ def evaluate_from_config(cfg) -> Path:
     dm = datamodule_for(module)
     splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
     metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
-    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / "eval"
+    out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(cfg.ckpt, "eval")
     evaluate_module(module, dm, splits, metrics, out)
     print(f"[splatrig] evaluation written to {out}")
     return out

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from framework.errors import reported_as_message
+from framework.paths import beside_checkpoint
 
 
 def main() -> int:
@@ -43,7 +44,7 @@ def main() -> int:
                 ckpt = report.out
             module = load_module(ckpt)
             module.eval()
-            out = Path(cfg.out_dir) if cfg.out_dir else Path(ckpt).resolve().parent.parent / "export"
+            out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(ckpt, "export")
             spec = str(cfg.pose)
             body = module.avatar.body
             if spec == "canonical":

@@ -18,3 +18,13 @@ def data_dir() -> Path:
     path = cache_dir() / "data"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def beside_checkpoint(ckpt: str | Path, name: str) -> Path:
+    """Default output folder of a command run on `ckpt` (a run's `<run>/checkpoints/<file>`): `<run>/<name>` for the
+    run's own model, `final.ckpt` (where training writes its evaluation), `<run>/<name>_<stem>` for any other
+    checkpoint (`eval_last`, `eval_final.pruned`), so evaluating, rendering or exporting a second checkpoint of a
+    run never overwrites what the first one wrote."""
+    path = Path(ckpt).resolve()
+    run = path.parent.parent
+    return run / name if path.name == "final.ckpt" else run / f"{name}_{path.stem}"

@@ -13,6 +13,7 @@ import torch
 from tqdm.auto import tqdm
 
 from framework.errors import reported_as_message
+from framework.paths import beside_checkpoint
 
 
 @torch.no_grad()
@@ -64,7 +65,7 @@ def render_from_config(cfg) -> Path:
     images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
                              float(cfg.orbit_turns), cfg.resolution, cfg.max_frames, float(cfg.fps))  # fmt: skip
     name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
-    out = Path(cfg.out_dir) if cfg.out_dir else Path(cfg.ckpt).resolve().parent.parent / name
+    out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(cfg.ckpt, name)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     for i, img in enumerate(images):
         with atomic_path(out / "frames" / f"{i:05d}.png") as tmp:

@@ -179,11 +179,14 @@ def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: 
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = _run_dirs(tmp_path)[-1]
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp_path / "cache"))
-    out = tmp_path / "standalone"
+    trained = {f.name: f.stat().st_mtime_ns for f in (run / "eval").iterdir()}
     cmd = [sys.executable, "-m", "framework.evaluate", f"ckpt={run / 'checkpoints' / 'last.ckpt'}",
-           "metrics=[psnr,ssim]", f"out_dir={out}"]  # fmt: skip
+           "metrics=[psnr,ssim]"]  # fmt: skip
     ev = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert ev.returncode == 0, ev.stderr[-3000:]
+    out = run / "eval_last"  # the default folder of a checkpoint other than final.ckpt: training's own eval stays
+    assert f"evaluation written to {out}" in ev.stdout
+    assert {f.name: f.stat().st_mtime_ns for f in (run / "eval").iterdir()} == trained
     assert (out / "summary.md").read_text() == (run / "eval" / "summary.md").read_text()
 
 
