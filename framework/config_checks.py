@@ -121,3 +121,16 @@ def check_render_config(cfg: DictConfig) -> None:
     _positive_int(cfg, "max_frames", "frames to render; null renders the whole motion", 100)
     _expect(cfg, "camera_index", lambda v: _is_int(v) and v >= 0, "a camera index >= 0", "For example camera_index=0.")
     _expect(cfg, "orbit_turns", _is_number, "a finite number of turns", "For example orbit_turns=1.0.")
+
+
+def check_prune_config(cfg: DictConfig) -> None:
+    """`python -m framework.prune` (and `framework.export prune=true`): tolerances are numbers >= 0 or null, counts
+    are integers >= 0."""
+    if OmegaConf.is_missing(cfg, "ckpt"):
+        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
+                          "ckpt=<run>/checkpoints/final.ckpt.")  # fmt: skip
+    for key in ("min_weight", "sh_tolerance", "fold_tolerance", "prune_tolerance"):
+        _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite number >= 0 (null switches the step off)",
+                f"For example {key}=0.004.")  # fmt: skip
+    for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames")):
+        _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")

@@ -36,10 +36,13 @@ def main() -> int:
         with reported_as_message():
             ckpt = str(cfg.ckpt)
             if cfg.prune:
+                from framework.config_checks import check_prune_config
                 from framework.scene.compact import prune_checkpoint
 
+                check_prune_config(cfg)
                 report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,
-                                          prune_tolerance=cfg.prune_tolerance)  # fmt: skip
+                                          prune_tolerance=cfg.prune_tolerance,
+                                          refit_steps=int(cfg.refit_steps))  # fmt: skip
                 print(report.summary())
                 ckpt = report.out
             module = load_module(ckpt)

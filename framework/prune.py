@@ -3,8 +3,9 @@
 Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
 whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when the
 training frames render within `fold_tolerance` RMS colour without it, removes the faintest Gaussians while they stay
-within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians as `fold_tolerance` allows; then prints
-Gaussians, size, render fps and PSNR before and after (`framework.scene.compact`).
+within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians as `fold_tolerance` allows; with
+`refit_steps`, refits the remaining Gaussians to the training images; then prints Gaussians, size, render fps and PSNR
+before and after (`framework.scene.compact`).
 """
 
 from __future__ import annotations
@@ -20,24 +21,32 @@ from omegaconf import DictConfig
 from framework.errors import reported_as_message
 
 
+def prune_from_config(cfg: DictConfig):
+    """What `python -m framework.prune` does with its composed config; returns the `PruneReport`."""
+    from framework.config_checks import check_prune_config
+    from framework.scene.compact import prune_checkpoint
+
+    check_prune_config(cfg)
+    report = prune_checkpoint(
+        cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
+        max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup), repeats=int(cfg.repeats),
+        device=cfg.device, fold_tolerance=None if cfg.fold_tolerance is None else float(cfg.fold_tolerance),
+        prune_tolerance=None if cfg.prune_tolerance is None else float(cfg.prune_tolerance),
+        refit_steps=int(cfg.refit_steps),
+    )  # fmt: skip
+    print(report.summary())
+    if cfg.json:
+        Path(cfg.json).write_text(json.dumps(report.to_dict(), indent=1))
+    return report
+
+
 def main() -> None:
     import hydra
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="prune")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
-            from framework.scene.compact import prune_checkpoint
-
-            report = prune_checkpoint(
-                cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
-                max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup),
-                repeats=int(cfg.repeats), device=cfg.device,
-                fold_tolerance=None if cfg.fold_tolerance is None else float(cfg.fold_tolerance),
-                prune_tolerance=None if cfg.prune_tolerance is None else float(cfg.prune_tolerance),
-            )  # fmt: skip
-            print(report.summary())
-            if cfg.json:
-                Path(cfg.json).write_text(json.dumps(report.to_dict(), indent=1))
+            prune_from_config(cfg)
 
     _main()
 

@@ -105,6 +105,8 @@ CASES = [
     Case("render_camera_index", "render", "`cameras=fixed camera_index=99`",
          ["ckpt={ckpt}", "motion=train", "cameras=fixed", "camera_index=99"]),
     Case("render_resolution_0", "render", "`resolution=0`", ["ckpt={ckpt}", "resolution=0"]),
+    Case("prune_refit_steps_negative", "prune", "`refit_steps=-1`", ["ckpt={ckpt}", "refit_steps=-1"]),
+    Case("prune_tolerance_negative", "prune", "`prune_tolerance=-0.01`", ["ckpt={ckpt}", "prune_tolerance=-0.01"]),
 ]  # fmt: skip
 
 
@@ -113,13 +115,17 @@ def invoke(entry: str, overrides: list[str], out_dir: Path) -> tuple[int, str]:
     from hydra import compose, initialize_config_module
 
     from framework.evaluate import evaluate_from_config
+    from framework.prune import prune_from_config
     from framework.render import render_from_config
     from framework.train import run
 
-    extra = [f"paths.output_dir={out_dir}"] if entry == "train" else [f"out_dir={out_dir}"]
+    extra = {"train": [f"paths.output_dir={out_dir}"], "prune": [f"out={out_dir / 'compact.ckpt'}"]}.get(
+        entry, [f"out_dir={out_dir}"]
+    )
     with initialize_config_module(config_module="framework.conf", version_base="1.3"):
         cfg = compose(config_name=entry, overrides=[*overrides, *extra])
-    function = {"train": run, "evaluate": evaluate_from_config, "render": render_from_config}[entry]
+    function = {"train": run, "evaluate": evaluate_from_config, "render": render_from_config,
+                "prune": prune_from_config}[entry]  # fmt: skip
     err = io.StringIO()
     status = 0
     with contextlib.redirect_stderr(err):

@@ -175,3 +175,23 @@ def test_export_with_prune_writes_the_compact_model_and_exports_it(auto_run, tmp
 
     pruned = torch.load(compact, map_location="cpu", weights_only=False)["state_dict"]
     assert read_splat_ply(ply).num == pruned["avatar.gaussians.params.means"].shape[0]  # the compact model's Gaussians
+
+
+def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, monkeypatch):
+    """With `deformer=lbs` the blend weights are the body's field at the means; a refit moves the means, so the
+    weights must follow them (as in training) for the compact model to rebuild them on loading rather than store them
+    at the old means."""
+    from framework.scene.compact import prune_checkpoint
+
+    run, _ = auto_run
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
+    ckpt = run / "checkpoints" / "final.ckpt"
+    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu")
+    refit = prune_checkpoint(ckpt, tmp_path / "refit.ckpt", measure=False, device="cpu", refit_steps=20)
+    assert plain.refit is None and refit.refit["steps"] == 20 and refit.refit["stopped"] is None
+    a, b = (torch.load(tmp_path / f"{n}.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+            for n in ("plain", "refit"))  # fmt: skip
+    key = "avatar.gaussians.params.means"
+    assert a[key].shape == b[key].shape and not torch.equal(a[key], b[key])  # the same Gaussians, moved
+    assert refit.skin_weights_stored is False and "avatar.gaussians.params.skin_weights" not in b
+    assert "refit the remaining Gaussians for 20 steps" in refit.summary()

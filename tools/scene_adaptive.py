@@ -61,8 +61,9 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
     return json.loads(stats.read_text())
 
 
-def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int) -> dict:
-    """paper_full measured and auto pruned (sizes and PSNR before and after), then the three models' frame rates,
+def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune_options: dict | None = None) -> dict:
+    """paper_full measured and auto pruned (sizes and PSNR before and after; `prune_options` go to
+    `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
     interleaved over `rounds` rounds (medians)."""
     from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
@@ -72,7 +73,7 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int) -> di
     full = measure_module(module, dm, repeats=0, file_bytes=full_ckpt.stat().st_size)  # fps: interleaved below
     auto_ckpt = scene_dir / "auto" / "checkpoints" / "final.ckpt"
     pruned_ckpt = auto_ckpt.with_name("final.pruned.ckpt")
-    report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device())  # fps: interleaved below
+    report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device(), **(prune_options or {}))
     measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
     fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
                           rounds)  # fmt: skip
@@ -81,7 +82,7 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int) -> di
     return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
             "compaction": {"removed_within_tolerance": report.removed_within_tolerance,
                            "prune_tolerance": report.prune_tolerance, "render_rms": report.render_rms,
-                           "skin_weights_stored": report.skin_weights_stored}}  # fmt: skip
+                           "skin_weights_stored": report.skin_weights_stored, "refit": report.refit}}  # fmt: skip
 
 
 def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int) -> dict[str, tuple[float, float]]:
@@ -124,11 +125,13 @@ def scene_table(name: str, result: dict) -> str:
         m = result["measures"][variant]
         stats = result["train"]["auto" if variant == "auto+pruned" else variant]
         peak = stats.get("cuda_peak_mib") or stats.get("peak_rss_mib")
+        refit = (result.get("compaction") or {}).get("refit") if variant == "auto+pruned" else None
+        seconds = stats["fit_seconds"] + (refit["seconds"] if refit else 0.0)  # the refit is training too
         psnr = m["psnr"]
         rows.append((
             variant, str(m["num_gaussians"]), str(m["sh_degree"]), f"{m['model_bytes'] / 2**20:.2f}",
             f"{m['novel_pose_fps']:.1f} ({m['novel_pose_fps'] / base['novel_pose_fps']:.2f}x)",
-            f"{stats['fit_seconds']:.0f}", f"{peak:.0f}",
+            f"{seconds:.0f}", f"{peak:.0f}",
             f"{psnr.get('novel_view', float('nan')):.2f}", f"{psnr.get('novel_pose', float('nan')):.2f}",
             f"{base['model_bytes'] / m['model_bytes']:.2f}x",
         ))  # fmt: skip
@@ -150,6 +153,10 @@ def scene_table(name: str, result: dict) -> str:
             f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "
             f"the trained one; skin weights {'stored' if comp['skin_weights_stored'] else 'rebuilt on loading'}"
         )
+    if comp.get("refit"):
+        r = comp["refit"]
+        pruned += (f"; then the remaining Gaussians refitted for {r['steps']} steps ({r['seconds']:.0f} s, in the "
+                   f"train s of auto+pruned)")  # fmt: skip
 
     return f"### {name}\n\nauto chose: {choices}\n\n{pruned}\n\n{format_table(rows, header)}\n"
 
@@ -170,14 +177,18 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
+    ap.add_argument("--prune-tolerance", type=float, default=None, help="default: framework.prune's")
+    ap.add_argument("--refit-steps", type=int, default=None, help="default: framework.prune's")
     args = ap.parse_args()
+    prune_options = {k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps))
+                     if v is not None}  # fmt: skip
     extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
     results = {}
     for scene in args.scenes:
         scene_dir = args.out / scene
         train_stats = {v: train(scene_dir / v, [*SCENES[scene], *o, *extra]) for v, o in VARIANTS.items()}
         summary = yaml.safe_load((scene_dir / "auto" / "scene.yaml").read_text())
-        measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds)
+        measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds, prune_options)
         results[scene] = {"train": train_stats, "measures": measures, "choices": summary["choices"],
                           "profile": summary["profile"]}  # fmt: skip
         results[scene]["removed_gaussians"] = results[scene]["measures"].pop("removed_gaussians")
@@ -188,7 +199,8 @@ def main() -> None:
         os.replace(tmp, args.out / "results.json")
     device = _device()
     lines = [f"# scene-adaptive comparison{' (SMOKE RUN: 50 steps, numbers are not results)' if args.smoke else ''}",
-             "", f"device {device}; overrides for every training: `{' '.join(extra) or '(none)'}`", ""]  # fmt: skip
+             "", f"device {device}; overrides for every training: `{' '.join(extra) or '(none)'}`; pruning: "
+             f"`{prune_options or 'framework.prune defaults'}`", ""]  # fmt: skip
     lines += [scene_table(scene, results[scene]) for scene in args.scenes]
     (args.out / "scene_adaptive.md").write_text("\n".join(lines))
     print("\n".join(lines))

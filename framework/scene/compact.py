@@ -32,6 +32,7 @@ from framework.model.pruning import (
     prune_within_tolerance,
     sh_band_rms,
 )
+from framework.model.refit import refit_gaussians
 from framework.model.render_check import RenderCheck
 
 DEFAULT_PRUNE_TOLERANCE = 0.7 * DEFAULT_FOLD_TOLERANCE
@@ -70,6 +71,7 @@ class PruneReport:
     removed_within_tolerance: int = 0  # of removed_gaussians, those beyond the min_weight threshold
     render_rms: float | None = None  # the compact model's checked training frames against the original's
     skin_weights_stored: bool = True  # False: the weights are the body's field at the means, rebuilt on loading
+    refit: dict[str, Any] | None = None  # RefitResult as a dict when the Gaussians were refitted after pruning
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
@@ -89,8 +91,14 @@ class PruneReport:
                          f"(fold_tolerance {f['tolerance']:.4g}); "
                          f"largest spread of its output over the training poses: {spread}")  # fmt: skip
         if self.render_rms is not None:
+            before_refit = " before the refit" if self.refit else ""
             lines.append(f"[splatrig] the compact model renders the checked training frames {self.render_rms:.5f} "
-                         "RMS (over the avatar's pixels) from the original")  # fmt: skip
+                         f"RMS (over the avatar's pixels) from the original{before_refit}")  # fmt: skip
+        if self.refit:
+            r = self.refit
+            lines.append(f"[splatrig] refit the remaining Gaussians for {r['steps']} steps ({r['seconds']:.0f} s): "
+                         f"training loss {r['loss_first']:.5f} -> {r['loss_last']:.5f}"
+                         + (f"; stopped: {r['stopped']}, parameters restored" if r["stopped"] else ""))  # fmt: skip
         lines.append(f"[splatrig] compact model: {self.out}")
         return "\n".join(lines)
 
@@ -317,14 +325,17 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
                      device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
-                     prune_tolerance: float | None = DEFAULT_PRUNE_TOLERANCE) -> PruneReport:  # fmt: skip
+                     prune_tolerance: float | None = DEFAULT_PRUNE_TOLERANCE,
+                     refit_steps: int = 0) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers).
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
     reach `min_weight` removed, then the faintest others while the frames stay within `prune_tolerance`; negligible
-    SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`.
+    SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`;
+    then, with `refit_steps`, the remaining Gaussians refitted to the training images (`framework.model.refit`; blend
+    weights that are the body's field at the means follow the means, as in training, and are baked again after).
     None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
@@ -346,6 +357,13 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     if fold is not None and not fold.folded:
         fold = fold_module_corrector(module, dm, fold_tolerance, check=check, partial=True)
     render_rms = check.rms(module.avatar)
+    refit = None
+    if refit_steps > 0:
+        follow_means = rebuildable_skin_weights(module)
+        if follow_means:
+            del module.avatar.gaussians.params["skin_weights"]
+        refit = refit_gaussians(module, dm, refit_steps)
+        module.bake_weights()
     skin_weights = not rebuildable_skin_weights(module)
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     compact = load_checkpoint_module(out, device)
@@ -354,7 +372,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
                        baked, str(device), None if fold is None else asdict(fold),
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
-                       skin_weights)  # fmt: skip
+                       skin_weights, None if refit is None else asdict(refit))  # fmt: skip
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
