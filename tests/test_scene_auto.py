@@ -143,7 +143,9 @@ def test_prune_entry_point_writes_a_compact_model_that_loads(auto_run, tmp_path)
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
     out = tmp_path / "compact.ckpt"
     cmd = [sys.executable, "-m", "framework.prune", f"ckpt={run / 'checkpoints' / 'final.ckpt'}", f"out={out}",
-           "warmup=1", "repeats=2", f"json={tmp_path / 'report.json'}"]  # fmt: skip
+           "warmup=1", "repeats=2", f"json={tmp_path / 'report.json'}", "prune_tolerance=null",
+           "refit_steps=0"]  # fmt: skip
+    # the min_weight threshold alone (no faint-Gaussian pruning, no refit: the refit has its own test below)
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "novel-pose fps" in proc.stdout and "novel_pose PSNR dB" in proc.stdout and out.is_file()
@@ -164,7 +166,8 @@ def test_export_with_prune_writes_the_compact_model_and_exports_it(auto_run, tmp
     run, _ = auto_run
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
     ckpt = run / "checkpoints" / "final.ckpt"
-    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "prune=true", f"out_dir={tmp_path / 'export'}"]
+    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "prune=true", f"out_dir={tmp_path / 'export'}",
+           "refit_steps=10"]  # fmt: skip
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     compact = ckpt.with_name("final.pruned.ckpt")
@@ -186,7 +189,7 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     run, _ = auto_run
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
     ckpt = run / "checkpoints" / "final.ckpt"
-    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu")
+    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu", refit_steps=0)
     refit = prune_checkpoint(ckpt, tmp_path / "refit.ckpt", measure=False, device="cpu", refit_steps=20)
     assert plain.refit is None and refit.refit["steps"] == 20 and refit.refit["stopped"] is None
     a, b = (torch.load(tmp_path / f"{n}.ckpt", map_location="cpu", weights_only=False)["state_dict"]
