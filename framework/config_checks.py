@@ -129,8 +129,11 @@ def check_prune_config(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg, "ckpt"):
         raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
                           "ckpt=<run>/checkpoints/final.ckpt.")  # fmt: skip
-    for key in ("min_weight", "sh_tolerance", "fold_tolerance", "prune_tolerance"):
+    for key in ("min_weight", "sh_tolerance", "fold_tolerance"):
         _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite number >= 0 (null switches the step off)",
                 f"For example {key}=0.004.")  # fmt: skip
+    _expect(cfg, "prune_tolerance", lambda v: v == "auto" or (_is_number(v) and v >= 0),
+            "'auto' or a finite number >= 0 (null: no faint-Gaussian pruning)",
+            "For example prune_tolerance=0.03.")  # fmt: skip
     for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames")):
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")

@@ -184,14 +184,17 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     """With `deformer=lbs` the blend weights are the body's field at the means; a refit moves the means, so the
     weights must follow them (as in training) for the compact model to rebuild them on loading rather than store them
     at the old means."""
-    from framework.scene.compact import prune_checkpoint
+    from framework.scene.compact import prune_checkpoint, resolve_prune_tolerance
 
     run, _ = auto_run
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
     ckpt = run / "checkpoints" / "final.ckpt"
-    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu", refit_steps=0)
+    # without a refit but at the tolerance the refit's "auto" means, so both keep the same Gaussians
+    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu", refit_steps=0,
+                             prune_tolerance=0.03)  # fmt: skip
     refit = prune_checkpoint(ckpt, tmp_path / "refit.ckpt", measure=False, device="cpu", refit_steps=20)
     assert plain.refit is None and refit.refit["steps"] == 20 and refit.refit["stopped"] is None
+    assert refit.prune_tolerance == 0.03 and resolve_prune_tolerance("auto", 0) == pytest.approx(0.7 / 255)
     a, b = (torch.load(tmp_path / f"{n}.ckpt", map_location="cpu", weights_only=False)["state_dict"]
             for n in ("plain", "refit"))  # fmt: skip
     key = "avatar.gaussians.params.means"

@@ -177,7 +177,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
-    ap.add_argument("--prune-tolerance", type=float, default=None, help="default: framework.prune's")
+    ap.add_argument("--prune-tolerance", type=float, default=None, help="default: framework.prune's (auto)")
     ap.add_argument("--refit-steps", type=int, default=None, help="default: framework.prune's")
     args = ap.parse_args()
     prune_options = {k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps))

@@ -35,6 +35,7 @@ from framework.model.pruning import (
 from framework.model.refit import refit_gaussians
 from framework.model.render_check import RenderCheck
 
+CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
 DEFAULT_REFIT_STEPS = 300
 """Steps of the refit after pruning (`framework.model.refit`): 11-22 s on 2 CPU cores at the CPU profile's 128 px."""
 DEFAULT_PRUNE_TOLERANCE = 0.03
@@ -42,9 +43,16 @@ DEFAULT_PRUNE_TOLERANCE = 0.03
 the refit follows: on the studio scenes it left 21-44 % fewer Gaussians than 0.7/255 without a refit, at a PSNR
 within 0.06 dB of that or better (docs/results/scene_adaptive.md, "Prune, then refit")."""
 NO_REFIT_PRUNE_TOLERANCE = 0.7 * DEFAULT_FOLD_TOLERANCE
-"""The tolerance to use with `refit_steps=0`: nothing repairs what pruning changes, so it stays small, and the rest of
-the fold tolerance is left to a partial F_a fold, checked against the same original renders."""
-CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
+"""The tolerance `"auto"` means with `refit_steps=0`: nothing repairs what pruning changes, so it stays small, and the
+rest of the fold tolerance is left to a partial F_a fold, checked against the same original renders."""
+
+
+def resolve_prune_tolerance(tolerance: float | str | None, refit_steps: int) -> float | None:
+    """`"auto"`: `DEFAULT_PRUNE_TOLERANCE` when a refit follows, else `NO_REFIT_PRUNE_TOLERANCE`; a number as given;
+    None (no faint-Gaussian pruning) as None."""
+    if tolerance == "auto":
+        return DEFAULT_PRUNE_TOLERANCE if refit_steps > 0 else NO_REFIT_PRUNE_TOLERANCE
+    return None if tolerance is None else float(tolerance)
 
 
 @dataclass
@@ -331,19 +339,21 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
                      device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
-                     prune_tolerance: float | None = DEFAULT_PRUNE_TOLERANCE,
+                     prune_tolerance: float | str | None = "auto",
                      refit_steps: int = DEFAULT_REFIT_STEPS) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers).
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
-    reach `min_weight` removed, then the faintest others while the frames stay within `prune_tolerance`; negligible
+    reach `min_weight` removed, then the faintest others while the frames stay within `prune_tolerance` (`"auto"`:
+    0.03 with a refit, 0.7/255 without, `resolve_prune_tolerance`); negligible
     SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`
     (of the original renders; with a refit, of the pruned model's, since the refit repairs both steps); then, with
     `refit_steps`, the remaining Gaussians refitted to the training images (`framework.model.refit`; blend weights
     that are the body's field at the means follow the means, as in training, and are baked again after).
     None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
+    prune_tolerance = resolve_prune_tolerance(prune_tolerance, refit_steps)
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
     if out.resolve() == ckpt_path.resolve():
