@@ -124,8 +124,8 @@ def check_render_config(cfg: DictConfig) -> None:
 
 
 def check_prune_config(cfg: DictConfig) -> None:
-    """`python -m framework.prune` (and `framework.export prune=true`): tolerances are numbers >= 0 or null, counts
-    are integers >= 0."""
+    """`python -m framework.prune` (and `framework.export prune=true`): tolerances are numbers >= 0 or null (the
+    prune tolerance also `auto`), counts are integers >= 0."""
     if OmegaConf.is_missing(cfg, "ckpt"):
         raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
                           "ckpt=<run>/checkpoints/final.ckpt.")  # fmt: skip
