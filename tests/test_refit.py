@@ -82,3 +82,27 @@ def test_refit_gives_back_its_start_when_the_loss_turns_non_finite(pruned, monke
     after = _state(module)
     assert all(torch.equal(before[k], after[k]) for k in before)  # three updates were made, and undone
     assert {n: p.requires_grad for n, p in module.named_parameters()} == flags
+
+
+def test_with_a_refit_the_partial_fold_gets_its_own_budget(tiny, tmp_path, monkeypatch) -> None:
+    """Pruning to 0.03 RMS leaves the renders further from the originals than F_a's fold tolerance (1/255). Without a
+    refit the partial fold is measured from the originals, so nothing can fold; with one it is measured from the
+    pruned model (the refit repairs both steps), so part of a strongly pose-dependent F_a folds."""
+    from framework.scene.compact import prune_checkpoint
+
+    ckpt, cache = tiny
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
+    stored = torch.load(ckpt, map_location="cpu", weights_only=False)
+    stored["state_dict"]["avatar.corrector.head.weight"] *= 30.0  # corrections too varied to fold whole
+    strong = tmp_path / "strong.ckpt"
+    torch.save(stored, strong)
+    folds = {}
+    for steps in (0, 2):
+        report = prune_checkpoint(strong, tmp_path / f"compact{steps}.ckpt", measure=False, device="cpu",
+                                  prune_tolerance=0.03, refit_steps=steps)  # fmt: skip
+        assert report.render_rms > 0.02  # pruning went well past the fold tolerance
+        folds[steps] = report.corrector_fold
+    assert not folds[0]["folded"] and folds[0]["folded_gaussians"] == 0
+    refit = folds[2]
+    assert not refit["folded"] and 0 < refit["folded_gaussians"] < refit["num_gaussians"]
+    assert refit["render_rms"] <= refit["tolerance"]
