@@ -87,6 +87,23 @@ def test_static_fit_trains_and_reports(whole_run):
         assert [e.step for e in scalars.Scalars(tag)] == [24, 49], tag
 
 
+def test_a_static_fit_compacts_and_refits(whole_run, tmp_path: Path, monkeypatch):
+    """`framework.prune` on a scene without a body: faint Gaussians go, the rest are refitted, the report says there
+    are no skin weights (rather than "stored"), and the compact file loads and renders the test views no worse than
+    a prune of the same Gaussians without the refit."""
+    from framework.scene.compact import prune_checkpoint
+
+    root, _ = whole_run
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(root / "cache"))
+    ckpt = _run_dirs(root)[-1] / "checkpoints" / "last.ckpt"
+    kw = dict(measure=True, repeats=0, device="cpu", prune_tolerance=0.03)
+    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", refit_steps=0, **kw)
+    refit = prune_checkpoint(ckpt, tmp_path / "refit.ckpt", refit_steps=30, **kw)
+    assert refit.skin_weights_stored is None and "no skin weights (no body)" in refit.summary()
+    assert refit.after.num_gaussians == plain.after.num_gaussians < refit.before.num_gaussians
+    assert refit.after.psnr["novel_view"] > plain.after.psnr["novel_view"]
+
+
 def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run(tmp_path: Path, whole_run):
     """A run killed while it writes the step-30 checkpoint keeps the step-20 one loadable; resumed, it continues the
     step count, the optimizer's and the densifier's state and the random streams, and ends where an uninterrupted

@@ -118,6 +118,7 @@ def _device() -> str:
 
 def scene_table(name: str, result: dict) -> str:
     from framework.plugins import format_table
+    from framework.scene.compact import skin_weights_outcome
 
     rows = []
     base = result["measures"]["paper_full"]
@@ -151,7 +152,7 @@ def scene_table(name: str, result: dict) -> str:
     if comp.get("render_rms") is not None:
         pruned += (
             f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "
-            f"the trained one; skin weights {'stored' if comp['skin_weights_stored'] else 'rebuilt on loading'}"
+            f"the trained one; {skin_weights_outcome(comp['skin_weights_stored'])}"
         )
     if comp.get("refit"):
         r = comp["refit"]

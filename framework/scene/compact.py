@@ -84,7 +84,7 @@ class PruneReport:
     prune_tolerance: float | None = None  # faint Gaussians removed while the checked frames stay within it
     removed_within_tolerance: int = 0  # of removed_gaussians, those beyond the min_weight threshold
     render_rms: float | None = None  # the compact model's checked training frames against the original's
-    skin_weights_stored: bool = True  # False: the weights are the body's field at the means, rebuilt on loading
+    skin_weights_stored: bool | None = True  # False: the body's field at the means, rebuilt on loading; None: no body
     refit: dict[str, Any] | None = None  # RefitResult as a dict when the Gaussians were refitted after pruning
 
     def summary(self) -> str:
@@ -95,8 +95,8 @@ class PruneReport:
                  f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
                  f"< {self.min_weight:.4g}{faint}); "
                  f"SH band RMS {[round(x, 5) for x in self.sh_band_rms]}; "
-                 f"F_dw {'baked' if self.weights_baked else 'absent'}; skin weights "
-                 f"{'stored' if self.skin_weights_stored else 'rebuilt from the body on loading'}; "
+                 f"F_dw {'baked' if self.weights_baked else 'absent'}; "
+                 f"{skin_weights_outcome(self.skin_weights_stored)}; "
                  f"device {self.device}"]  # fmt: skip
         if self.corrector_fold is not None:
             f = self.corrector_fold
@@ -143,6 +143,13 @@ class PruneReport:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def skin_weights_outcome(stored: bool | None) -> str:
+    """How a compact model carries its blend weights, in words (for `PruneReport.skin_weights_stored`)."""
+    if stored is None:
+        return "no skin weights (no body)"
+    return "skin weights stored" if stored else "skin weights rebuilt from the body on loading"
 
 
 def _mib(n: int | None) -> str:
@@ -386,13 +393,14 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
         module.bake_weights()
     skin_weights = not rebuildable_skin_weights(module)
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
+    has_weights = "skin_weights" in module.avatar.gaussians.params  # a static scene's Gaussians have none
     compact = load_checkpoint_module(out, device)
     after = measure_module(compact, dm, warmup=warmup, repeats=reps, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
                        baked, str(device), None if fold is None else asdict(fold),
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
-                       skin_weights, None if refit is None else asdict(refit))  # fmt: skip
+                       skin_weights if has_weights else None, None if refit is None else asdict(refit))  # fmt: skip
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
