@@ -39,6 +39,7 @@ from framework.model.avatar import Avatar, GaussianParams
 from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
+from framework.splat.sh import sh_degree_of_bases
 from framework.types import Cameras, FrameBatch, RenderOutput
 
 SYNTHETIC_SH_DEGREE = 3
@@ -59,13 +60,14 @@ def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
 
 
 def trained_avatar(ckpt: str, device: str) -> tuple[Avatar, int]:
-    """The checkpoint's avatar with baked weights, and the SH degree its training had reached (the degree a viewer
-    renders it at: a compact model from `framework.export prune=true` may keep fewer bands than paper_full's 3)."""
+    """The checkpoint's avatar with baked weights, and the SH degree its stored coefficients hold: a compact model from
+    `framework.export prune=true` may keep fewer bands than paper_full's 3; a short run's bands that its schedule had
+    not switched on yet are zero and are timed all the same, as a full run's would be."""
     from framework.evaluate import load_module
 
     module = load_module(ckpt, map_location=device)
     module.bake_weights()
-    return module.avatar.to(device), module.sh_degree(module.trained_steps())
+    return module.avatar.to(device), sh_degree_of_bases(module.avatar.gaussians.gaussians().sh.shape[1])
 
 
 def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:

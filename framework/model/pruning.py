@@ -28,6 +28,7 @@ from framework.interfaces.rasterizer import Rasterizer
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.optim_surgery import keep_rows, update_params
 from framework.model.render_check import RenderCheck, largest_passing
+from framework.splat.sh import sh_degree_of_bases
 from framework.types import FrameBatch
 
 DEFAULT_MIN_WEIGHT = 1.0 / 255.0
@@ -107,7 +108,7 @@ def sh_band_rms(shN: Tensor) -> list[float]:
 
     shN [N, K - 1, 3]: the coefficients after the DC term (band l holds rows l^2 - 1 .. (l + 1)^2 - 2)."""
     out = []
-    degree = int(round(math.sqrt(shN.shape[1] + 1))) - 1
+    degree = sh_degree_of_bases(shN.shape[1] + 1)
     for band in range(1, degree + 1):
         rows = shN[:, band * band - 1 : (band + 1) ** 2 - 1]  # [N, 2l + 1, 3]
         per_gaussian = (rows.detach().double() ** 2).sum(1) / (4 * math.pi)  # [N, 3] mean square over the sphere

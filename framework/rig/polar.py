@@ -109,20 +109,15 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
 
 
-def _compute_dtype(X: Tensor, dtype: torch.dtype | None) -> torch.dtype:
-    compute = dtype or torch.promote_types(X.dtype, torch.float32)
-    if compute not in (torch.float32, torch.float64):
-        raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
-    return compute
-
-
 @torch.no_grad()
 def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
     """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
     if method not in ("svd", "newton"):
         raise ValueError(f"polar: method must be 'svd' or 'newton', got '{method}'.")
     out_dtype, M = X.dtype, X.shape[1]
-    compute = _compute_dtype(X, dtype)
+    compute = dtype or torch.promote_types(X.dtype, torch.float32)
+    if compute not in (torch.float32, torch.float64):
+        raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
     Xc = X.to(torch.float64 if method == "svd" else compute).contiguous()  # [9, M]
     if M == 0:
         return torch.empty_like(X)

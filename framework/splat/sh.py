@@ -7,6 +7,8 @@ raw `mean - camera_centre` vector.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -36,6 +38,11 @@ MAX_SH_DEGREE = 3
 def num_sh_bases(degree: int) -> int:
     """(degree + 1) ** 2 coefficients per colour channel."""
     return (degree + 1) ** 2
+
+
+def sh_degree_of_bases(num_bases: int) -> int:
+    """The degree whose (degree + 1) ** 2 coefficients `num_bases` holds (the inverse of `num_sh_bases`)."""
+    return math.isqrt(num_bases) - 1
 
 
 def _check_degree(degree: int) -> None:
