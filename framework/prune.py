@@ -2,10 +2,10 @@
 
 Removes Gaussians whose blending weight never reaches `min_weight` over the training views and poses, drops SH bands
 whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F_a into the Gaussians when the
-training frames render within `fold_tolerance` RMS colour without it, removes the faintest Gaussians while they stay
-within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians as `fold_tolerance` allows; with
-`refit_steps`, refits the remaining Gaussians to the training images; then prints Gaussians, size, render fps and PSNR
-before and after (`framework.scene.compact`).
+training frames render within `fold_tolerance` RMS colour without it, removes more Gaussians (the least needed per
+pixel they cover first) while they stay within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians
+as `fold_tolerance` allows; with `refit_steps`, refits the remaining Gaussians to the training images; then prints
+Gaussians, size, render fps and PSNR before and after (`framework.scene.compact`).
 """
 
 from __future__ import annotations

@@ -109,6 +109,34 @@ class RenderOutput:
 
 
 @dataclass
+class BlendWeights:
+    """What each Gaussian adds to the images, as composited: its blending weights w = T * alpha over every (pixel,
+    camera) pair where it contributes (after the alpha cull and early termination), summarised per Gaussian.
+    Pruning ranks by them (`framework.model.pruning`)."""
+
+    max: Tensor  # [N] the largest w
+    square_sum: Tensor  # [N] sum of w^2 (float64: sums over many frames)
+    pairs: Tensor  # [N] how many pairs have w > 0 (float64 counts)
+
+    @classmethod
+    def zeros(cls, n: int, device: torch.device | str | None = None,
+              dtype: torch.dtype = torch.float32) -> BlendWeights:  # fmt: skip
+        z = torch.zeros(n, dtype=torch.float64, device=device)
+        return cls(torch.zeros(n, dtype=dtype, device=device), z, z.clone())
+
+    def add(self, other: BlendWeights) -> BlendWeights:
+        """The summary of both sets of images (of the same Gaussians)."""
+        return BlendWeights(torch.maximum(self.max, other.max.to(self.max.dtype)), self.square_sum + other.square_sum,
+                            self.pairs + other.pairs)  # fmt: skip
+
+    @property
+    def mean_square(self) -> Tensor:
+        """[N] the mean w^2 over the pairs a Gaussian costs the rasterizer (0 where it has none): the image change its
+        removal makes per pixel it covers, squared (float32)."""
+        return (self.square_sum / self.pairs.clamp_min(1.0)).float()
+
+
+@dataclass
 class FrameBatch:
     """One training/evaluation sample: images of one frame from one or more cameras (B views)."""
 

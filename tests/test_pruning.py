@@ -13,8 +13,8 @@ from framework.cameras import orbit_cameras
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.gaussian_init import from_body_surface
 from framework.model.pruning import (
+    contributions,
     drop_sh_bands,
-    max_contributions,
     negligible_sh_degree,
     prune_gaussians,
     sh_band_rms,
@@ -29,9 +29,10 @@ load_plugins()
 SIZE = 40
 
 
-def test_max_blend_weights_match_the_float64_reference():
-    """The largest T * alpha of each Gaussian equals d rgb / d colour of the brute-force float64 compositor (colour =
-    SH_C0 * c0 + 0.5 at degree 0), maximised over pixels and cameras: occluded, culled and overlapping Gaussians."""
+def test_blend_weights_match_the_float64_reference():
+    """Each Gaussian's T * alpha at a pixel equals d rgb / d colour of the brute-force float64 compositor (colour =
+    SH_C0 * c0 + 0.5 at degree 0); over pixels and cameras, the largest, the sum of squares and the count of non-zero
+    ones match: occluded, culled and overlapping Gaussians."""
     gen = torch.Generator().manual_seed(0)
     f64 = torch.float64
     N = 8
@@ -54,10 +55,19 @@ def test_max_blend_weights_match_the_float64_reference():
         return reference_render(means, quats, scales, opacities, sh, K, w2c, 12, 10, 0)["rgb"][..., 0]
 
     jac = torch.autograd.functional.jacobian(rgb_red, torch.zeros(N, dtype=f64))  # [C, H, W, N]
-    expected = (jac / SH_C0).reshape(-1, N).amax(0)
-    got = RASTERIZERS.build("torch_ref").max_blend_weights(means, quats, scales, opacities, Cameras(K, w2c, 12, 10))
-    torch.testing.assert_close(got, expected, atol=1e-12, rtol=0)
+    w = (jac / SH_C0).reshape(-1, N)  # [C * H * W, N] every pixel's weight of every Gaussian
+    expected = w.amax(0)
+    got = RASTERIZERS.build("torch_ref").blend_weights(means, quats, scales, opacities, Cameras(K, w2c, 12, 10))
+    torch.testing.assert_close(got.max, expected, atol=1e-12, rtol=0)
+    torch.testing.assert_close(got.square_sum, w.square().sum(0), atol=1e-12, rtol=0)
+    torch.testing.assert_close(got.pairs, (w > 1e-14).sum(0).double(), atol=0, rtol=0)
     assert expected[7] == 0 and 0 < expected[6] < 0.05 < expected[0]  # culled, behind the sheet, the sheet
+    assert got.pairs[7] == 0 and got.mean_square[7] == 0 and got.pairs[0] > 4 * got.pairs[1:7].min()
+    # two sets of images summarise as one: the same cameras twice give the same largest weight, twice the sums
+    both = got.add(got)
+    torch.testing.assert_close(both.max, got.max, atol=0, rtol=0)
+    torch.testing.assert_close(both.square_sum, 2 * got.square_sum, atol=0, rtol=0)
+    torch.testing.assert_close(both.mean_square, got.mean_square, atol=1e-7, rtol=1e-6)
 
 
 def _cameras() -> Cameras:
@@ -101,7 +111,7 @@ def test_pruning_gaussians_that_never_show_leaves_renders_unchanged():
     body = BODIES.build("procedural")
     avatar, batches = _avatar(body), _batches(body)
     before = _renders(avatar, batches)
-    weights = max_contributions(avatar, batches)
+    weights = contributions(avatar, batches).max
     n = avatar.gaussians.num
     assert weights[n - 2] == 0 and weights[n - 1] == 0  # the two planted ones
     assert (weights > 0).sum() > 100
@@ -110,7 +120,7 @@ def test_pruning_gaussians_that_never_show_leaves_renders_unchanged():
     torch.testing.assert_close(_renders(avatar, batches), before, atol=1e-6, rtol=0)
     # and the comparison can fail: removing the Gaussian with the largest weight changes the image
     top = torch.ones(avatar.gaussians.num, dtype=torch.bool)
-    top[int(max_contributions(avatar, batches).argmax())] = False
+    top[int(contributions(avatar, batches).max.argmax())] = False
     prune_gaussians(avatar.gaussians, top)
     assert (_renders(avatar, batches) - before).abs().max() > 0.01
 
@@ -267,7 +277,7 @@ def test_pruning_renumbers_the_rows_of_a_partially_folded_corrector():
     fold = fold_corrector(avatar, batches, sh_degree=1, tolerance=0.5 * whole.render_rms, partial=True)
     assert 0 < fold.folded_gaussians < avatar.gaussians.num
     before = _renders(avatar, batches, sh_degree=1)
-    keep = max_contributions(avatar, batches) > 0
+    keep = contributions(avatar, batches).max > 0
     assert (~keep).sum() >= 4 and not keep[3] and not keep[7] and int(avatar.corrector.active_rows[-1]) > 7
     prune_gaussians(avatar.gaussians, keep, avatar.corrector)
     torch.testing.assert_close(_renders(avatar, batches, sh_degree=1), before, atol=1e-6, rtol=0)
@@ -282,7 +292,7 @@ def test_pruning_within_a_tolerance_removes_faint_gaussians_and_keeps_the_render
     original = copy.deepcopy(avatar)
     n = avatar.gaussians.num
     check = RenderCheck.of(avatar, batches, sh_degree=0)
-    weights = max_contributions(avatar, batches)
+    weights = contributions(avatar, batches).max
     removed = prune_within_tolerance(avatar, check, weights, tolerance=0.01)
     rms = _covered_rms_by_hand(avatar, original, batches, 0)
     assert 2 < removed <= 0.9 * n and avatar.gaussians.num == n - removed and 0 < rms <= 0.01

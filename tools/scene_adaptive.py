@@ -143,7 +143,8 @@ def scene_table(name: str, result: dict) -> str:
     fold, comp = result.get("corrector_fold"), result.get("compaction") or {}
     pruned = f"pruning removed {result['removed_gaussians']} Gaussians"
     if comp.get("prune_tolerance") is not None:
-        pruned += f" ({comp['removed_within_tolerance']} of them the faintest, within {comp['prune_tolerance']:.4f})"
+        within = comp["prune_tolerance"]
+        pruned += f" ({comp['removed_within_tolerance']} of them the least needed, within {within:.4f})"
     if fold:
         from framework.model.corrector_fold import fold_outcome
 

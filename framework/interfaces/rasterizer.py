@@ -39,7 +39,7 @@ from framework.splat.contract import (  # noqa: F401
     NEAR_PLANE,
     TRANSMITTANCE_MIN,
 )
-from framework.types import Cameras, RenderOutput
+from framework.types import BlendWeights, Cameras, RenderOutput
 
 
 class Rasterizer(ABC):
@@ -70,7 +70,7 @@ class Rasterizer(ABC):
     ) -> RenderOutput:
         """Render every camera; differentiable in all Gaussian tensors."""
 
-    def max_blend_weights(
+    def blend_weights(
         self,
         means: Tensor,  # [N, 3]
         quats: Tensor,  # [N, 4]
@@ -80,10 +80,11 @@ class Rasterizer(ABC):
         *,
         near: float = NEAR_PLANE,
         far: float = FAR_PLANE,
-    ) -> Tensor:
-        """[N] the largest blending weight T * alpha (as composited, after early termination) each Gaussian reaches
-        at any pixel of any camera; pruning removes Gaussians that never reach a threshold. Optional: a backend that
-        cannot report it leaves this as is and callers fall back to `torch_ref`."""
+    ) -> BlendWeights:
+        """Per Gaussian, the blending weights T * alpha (as composited, after early termination) it has at the pixels
+        of every camera: the largest, the sum of squares and the pair count; pruning removes Gaussians that never
+        reach a threshold and ranks the others. Optional: a backend that cannot report them leaves this as is and
+        callers fall back to `torch_ref`."""
         raise NotImplementedError(f"rasterizer '{self.registry_name}' does not report per-Gaussian blending weights")
 
 

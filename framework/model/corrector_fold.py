@@ -135,9 +135,9 @@ def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int
     avatar.corrector = corrector  # not close enough: put everything back, then try a part
     _restore(p, kept)
     if partial and hasattr(corrector, "active_rows") and not corrector.active_rows.numel() and n > 1:
-        from framework.model.pruning import max_contributions
+        from framework.model.pruning import contributions
 
-        order = torch.argsort(variation * max_contributions(avatar, batches))  # least needed first
+        order = torch.argsort(variation * contributions(avatar, batches).max)  # least needed first
 
         def fold_first(k: int) -> float:  # k < n: an empty active_rows would mean "every row"
             _write_mean(p, mean, kept, order[:k])

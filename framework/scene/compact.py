@@ -25,8 +25,8 @@ from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
     DEFAULT_SH_TOLERANCE,
+    contributions,
     drop_sh_bands,
-    max_contributions,
     negligible_sh_degree,
     prune_gaussians,
     prune_within_tolerance,
@@ -89,7 +89,8 @@ class PruneReport:
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
-        faint = (f", {self.removed_within_tolerance} of them the faintest while the training frames stayed within "
+        faint = (f", {self.removed_within_tolerance} of them by the smallest mean squared blending weight per covered "
+                 f"pixel while the training frames stayed within "
                  f"{self.prune_tolerance:.4g} RMS") if self.prune_tolerance is not None else ""  # fmt: skip
         lines = [f"\n{self.table()}\n",
                  f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
@@ -268,7 +269,8 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
                  max_frames: int | None = None, check: RenderCheck | None = None,
                  tolerance: float | None = None) -> tuple[int, int, list[float]]:  # fmt: skip
     """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses; with a
-    `check` and `tolerance`, then the faintest others while the checked frames stay within it; then the SH bands whose
+    `check` and `tolerance`, then others, the smallest mean squared blending weight per covered pixel first
+    (`framework.model.pruning`), while the checked frames stay within it; then the SH bands whose
     RMS colour change is below `sh_tolerance`. Returns (Gaussians removed, of them within the tolerance, band RMS)."""
     from framework.lightning.data import collate_frames
 
@@ -286,12 +288,12 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
             yield collate_frames([dataset[i]]).to(module.device)
 
     avatar = module.avatar
-    weights = max_contributions(avatar, batches())
-    visible = weights >= min_weight
+    seen = contributions(avatar, batches())
+    visible = seen.max >= min_weight
     removed = prune_gaussians(avatar.gaussians, visible, avatar.corrector)
     faint = 0
     if check is not None and tolerance is not None:
-        faint = prune_within_tolerance(avatar, check, weights[visible], tolerance)
+        faint = prune_within_tolerance(avatar, check, seen.mean_square[visible], tolerance)
     params = avatar.gaussians
     rms = sh_band_rms(params.params["shN"])
     corrector_cfg = module.cfg.get("corrector") or {}
@@ -353,7 +355,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
-    reach `min_weight` removed, then the faintest others while the frames stay within `prune_tolerance` (`"auto"`:
+    reach `min_weight` removed, then others (the smallest mean squared blending weight per covered pixel first)
+    while the frames stay within `prune_tolerance` (`"auto"`:
     0.03 with a refit, 0.7/255 without, `resolve_prune_tolerance`); negligible
     SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`
     (of the original renders; with a refit, of the pruned model's, since the refit repairs both steps); then, with

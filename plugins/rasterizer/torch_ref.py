@@ -38,7 +38,7 @@ from framework.splat.bands import row_bands
 from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
 from framework.splat.projection import project_gaussians
 from framework.splat.sh import eval_sh
-from framework.types import Cameras, RenderOutput
+from framework.types import BlendWeights, Cameras, RenderOutput
 
 _pixel_centre_cache: dict[tuple[int, int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
 
@@ -387,7 +387,7 @@ class TorchRefRasterizer(Rasterizer):
         )
 
     @torch.no_grad()
-    def max_blend_weights(
+    def blend_weights(
         self,
         means: Tensor,
         quats: Tensor,
@@ -397,14 +397,15 @@ class TorchRefRasterizer(Rasterizer):
         *,
         near: float = NEAR_PLANE,
         far: float = FAR_PLANE,
-    ) -> Tensor:
-        """[N] the largest blending weight T * alpha each Gaussian reaches at any pixel of any camera (pruning).
+    ) -> BlendWeights:
+        """Per Gaussian, the largest blending weight T * alpha at any pixel of any camera, the sum of their squares and
+        the number of pairs with one (pruning).
 
-        The same pairs, alphas and early termination as `render`, with no colours, no autograd and a max in place of
-        the colour sums, so it is a separate pass that the training step never runs."""
+        The same pairs, alphas and early termination as `render`, with no colours, no autograd and reductions in place
+        of the colour sums, so it is a separate pass that the training step never runs."""
         C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
         dtype, dev = means.dtype, means.device
-        out = torch.zeros(N, dtype=dtype, device=dev)
+        out = BlendWeights.zeros(N, dev, dtype)
         proj = project_gaussians(
             means, quats, scales, opacities, cameras.K.to(dev, dtype), cameras.world_to_cam.to(dev, dtype), W, H,
             near=near, far=far,
@@ -425,4 +426,9 @@ class TorchRefRasterizer(Rasterizer):
         _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, torch.take(px, pix),
                                  torch.take(py, pix))  # fmt: skip
         alpha, _, T, _ = pair_transmittance(alpha, pix, C * H * W)
-        return out.scatter_reduce_(0, torch.take(gid, ent), T * alpha, reduce="amax")
+        w = (T * alpha).double()  # [P] 0 where the pair does not contribute
+        g = torch.take(gid, ent)  # [P]
+        out.max.scatter_reduce_(0, g, w.to(out.max.dtype), reduce="amax")
+        out.square_sum.index_add_(0, g, w * w)
+        out.pairs.index_add_(0, g, (w > 0).double())
+        return out
