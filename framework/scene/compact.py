@@ -270,8 +270,8 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
                  tolerance: float | None = None) -> tuple[int, int, list[float]]:  # fmt: skip
     """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses; with a
     `check` and `tolerance`, then others, the smallest mean squared blending weight per covered pixel first
-    (`framework.model.pruning`), while the checked frames stay within it; then the SH bands whose
-    RMS colour change is below `sh_tolerance`. Returns (Gaussians removed, of them within the tolerance, band RMS)."""
+    (`framework.model.pruning`), while the checked frames stay within it; then the SH bands whose RMS colour change
+    is below `sh_tolerance`. Returns (Gaussians removed, of them within the tolerance, band RMS)."""
     from framework.lightning.data import collate_frames
 
     dataset = dm.train_set
@@ -356,12 +356,12 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
     reach `min_weight` removed, then others (the smallest mean squared blending weight per covered pixel first)
-    while the frames stay within `prune_tolerance` (`"auto"`:
-    0.03 with a refit, 0.7/255 without, `resolve_prune_tolerance`); negligible
-    SH bands dropped; then, if F_a was kept, folded for as many Gaussians as keep the frames within `fold_tolerance`
-    (of the original renders; with a refit, of the pruned model's, since the refit repairs both steps); then, with
-    `refit_steps`, the remaining Gaussians refitted to the training images (`framework.model.refit`; blend weights
-    that are the body's field at the means follow the means, as in training, and are baked again after).
+    while the frames stay within `prune_tolerance` (`"auto"`: 0.03 with a refit, 0.7/255 without,
+    `resolve_prune_tolerance`); negligible SH bands dropped; then, if F_a was kept, folded for as many Gaussians as
+    keep the frames within `fold_tolerance` (of the original renders; with a refit, of the pruned model's, since the
+    refit repairs both steps); then, with `refit_steps`, the remaining Gaussians refitted to the training images
+    (`framework.model.refit`; blend weights that are the body's field at the means follow the means, as in training,
+    and are baked again after).
     None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
     prune_tolerance = resolve_prune_tolerance(prune_tolerance, refit_steps)
     ckpt_path = Path(ckpt_path)
