@@ -53,6 +53,16 @@ class BodyModel(nn.Module, ABC):
         """A dataset pose [B, num_input_joints, 3] -> this body's pose [B, J, 3] (the same pose for most bodies)."""
         return pose
 
+    def unfolded_skinning(self) -> tuple[Tensor, Tensor] | None:
+        """(skin weights [V, J_full] over every joint of the skeleton this body folded, joint -> kept-joint index
+        [J_full]) for a body with frozen joints folded away (`framework.model.frozen_body`), else None.
+
+        Why: the paper's L_w (the std of the blend weights over the six points x +- s_l a_l) is defined on the whole
+        skeleton. Folded weights are constant across a boundary between two folded joints, so measured on them L_w
+        stops holding Gaussians back from spreading over it (a near-static scene with 18 of 22 joints frozen trained
+        Gaussians twice as wide and lost 0.4 dB at 4000 steps; docs/results/scene_adaptive.md)."""
+        return None
+
     def pose_description(self) -> str:
         """How this body names itself in a pose-shape error (subclasses add what helps the user fix the pose)."""
         return f"{self.registry_name or type(self).__name__} body"

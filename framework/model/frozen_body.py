@@ -71,6 +71,7 @@ class FrozenJointsBody(BodyModel):
                 self.register_buffer(optional, getattr(base, optional).clone())
         # not persistent: derived from the config and the data on every construction
         self.register_buffer("kept_indices", torch.as_tensor(kept, dtype=torch.long), persistent=False)  # [J']
+        self.register_buffer("fold_index", torch.as_tensor(to_kept, dtype=torch.long), persistent=False)  # [J]
         self.register_buffer("axis_rotations", Q.contiguous(), persistent=False)  # [J', 3, 3]
         self.register_buffer("constant_pose", constant_pose[0], persistent=False)  # [J, 3]
         self._num_input_joints = len(names)
@@ -84,6 +85,10 @@ class FrozenJointsBody(BodyModel):
     def base_body(self) -> BodyModel:
         """The full skeleton whose poses `input_pose` takes (motion files are retargeted onto it)."""
         return self._base[0]
+
+    def unfolded_skinning(self) -> tuple[Tensor, Tensor]:
+        """The base body's weights on this body's (re-based) rest vertices, and each joint's kept joint."""
+        return self.base_body.skin_weights.to(self.skin_weights.device), self.fold_index
 
     def pose_description(self) -> str:
         return f"{self._base_description} with {len(self.frozen_joints)} frozen joints ({self.num_joints} left)"

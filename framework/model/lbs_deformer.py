@@ -10,7 +10,7 @@ from torch import Tensor
 from framework.interfaces.deformer import Deformer, DeformOutput
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
 from framework.rig.sh_rotation import rotate_sh
-from framework.rig.weight_field import WeightField
+from framework.rig.weight_field import WeightField, build_weight_grid
 from framework.types import Gaussians
 
 
@@ -21,7 +21,10 @@ class LBSDeformerBase(Deformer):
 
     aux["weight_std"] [N] is the L_w term (std of the weights over the six points x +- s_l a_l); it is computed only
     when gradients are enabled (training), `weight_std` is on and a loss term reads it (`use_aux`), and is zero for
-    baked weights (nothing to smooth). `centres` chooses how centres move (`framework.rig.lbs.apply_lbs`).
+    baked weights (nothing to smooth). On a body with frozen joints (`BodyModel.unfolded_skinning`) it is measured
+    over the whole skeleton, as without freezing: the six points' weights from a second field over every joint of the
+    full skeleton (the LBS field is its folded sums), plus the change F_dw makes on the kept joints. `centres` chooses
+    how centres move (`framework.rig.lbs.apply_lbs`).
     """
 
     def __init__(
@@ -45,6 +48,7 @@ class LBSDeformerBase(Deformer):
         self.weight_std_enabled, self.use_cache = weight_std, use_cache
         self.report_weight_std = weight_std
         self.field: WeightField | None = None
+        self.unfolded: WeightField | None = None  # frozen joints: the field over the full skeleton, for L_w only
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
         if body is None or bounds is None:
@@ -52,7 +56,22 @@ class LBSDeformerBase(Deformer):
                 f"deformer '{self.registry_name}' needs a body model and a canonical box; for static scenes use "
                 "deformer=identity."
             )
-        self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
+        unfolded = body.unfolded_skinning() if hasattr(body, "unfolded_skinning") else None
+        self.unfolded = None
+        if unfolded is None:
+            self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
+            return
+        # Frozen joints: one grid over every joint of the full skeleton (one closest-point pass), and the LBS field
+        # as its folded sums (exactly the grid of the folded weights: both are linear in the vertex weights).
+        weights, fold_index = unfolded
+        full = build_weight_grid(body.rest_vertices, body.faces, weights, bounds, self.grid_resolution, self.use_cache)
+        folded = full.new_zeros(int(body.num_joints), *full.shape[1:]).index_add_(0, fold_index.to(full.device), full)
+        box = torch.as_tensor(bounds, dtype=torch.float32)
+        self.field = WeightField(folded, box)
+        self.unfolded = WeightField(full, box)
+        fold = torch.zeros(full.shape[0], folded.shape[0])  # [J_full, J] 0/1
+        fold[torch.arange(full.shape[0]), fold_index.cpu()] = 1.0
+        self.register_buffer("fold", fold, persistent=False)
 
     def use_aux(self, keys: frozenset[str]) -> None:
         self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
@@ -61,7 +80,29 @@ class LBSDeformerBase(Deformer):
         """Blend weights [..., J] at canonical points [..., 3]."""
         if self.field is None:
             raise RuntimeError(f"deformer '{self.registry_name}': call bind(body, bounds) before using it.")
-        return self.field.sample(points)
+        return self.refine(points, self.field.sample(points))
+
+    def refine(self, points: Tensor, grid_weights: Tensor) -> Tensor:
+        """The weights the model uses from the grid's [..., J] at `points` (`lbs_residual` adds F_dw here)."""
+        return grid_weights
+
+    @property
+    def refines(self) -> bool:
+        """Whether `refine` changes the grid weights now (F_dw switched on)."""
+        return False
+
+    def smooth_weights(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """points [N, 7, 3] (the centre, then the six L_w points) -> (weights [N, J] at the centres, L_w [N])."""
+        if self.unfolded is None:
+            w7 = self.weights(points)  # [N, 7, J]
+            return w7[:, 0], weight_std(w7[:, 1:])
+        full6 = self.unfolded.sample(points[:, 1:])  # [N, 6, J_full]
+        std = weight_std(full6)
+        if not self.refines:
+            return self.weights(points[:, 0]), std
+        grid7 = torch.cat([self.field.sample(points[:, :1]), full6 @ self.fold.to(full6)], dim=1)  # [N, 7, J]
+        w7 = self.refine(points, grid7)
+        return w7[:, 0], std + (weight_std(w7[:, 1:]) - weight_std(grid7[:, 1:]))  # F_dw's own change counts too
 
     @torch.no_grad()
     def bake(self, gaussians: Gaussians) -> Tensor:
@@ -78,9 +119,7 @@ class LBSDeformerBase(Deformer):
         elif self.report_weight_std and torch.is_grad_enabled():
             # one lookup for the centre and the six L_w points: the field (and F_dw) cost is per call, then per point
             points = torch.cat([gaussians.means.unsqueeze(-2), six_points(gaussians)], dim=-2)  # [N, 7, 3]
-            w7 = self.weights(points)  # [N, 7, J]
-            w = w7[:, 0]
-            aux["weight_std"] = weight_std(w7[:, 1:])
+            w, aux["weight_std"] = self.smooth_weights(points)  # [N, J], [N]
         else:
             w = self.weights(gaussians.means)  # [N, J]
         posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)

@@ -48,8 +48,11 @@ class LBSResidualDeformer(LBSDeformerBase):
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(*mods, last)
 
-    def weights(self, points: Tensor) -> Tensor:
-        w = super().weights(points)  # [..., J]
+    @property
+    def refines(self) -> bool:
+        return self.enabled and self.mlp is not None
+
+    def refine(self, points: Tensor, w: Tensor) -> Tensor:
         if not self.enabled or self.mlp is None:
             return w
         x = normalize_to_bounds(points, self.field.bounds)
