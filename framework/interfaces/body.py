@@ -60,7 +60,7 @@ class BodyModel(nn.Module, ABC):
         Why: the paper's L_w (the std of the blend weights over the six points x +- s_l a_l) is defined on the whole
         skeleton. Folded weights are constant across a boundary between two folded joints, so measured on them L_w
         stops holding Gaussians back from spreading over it (a near-static scene with 18 of 22 joints frozen trained
-        Gaussians twice as wide and lost 0.4 dB at 4000 steps; docs/results/scene_adaptive.md)."""
+        Gaussians twice as wide and 0.5 dB worse at 4000 steps; docs/results/scene_adaptive.md)."""
         return None
 
     def pose_description(self) -> str:
