@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
+from framework.rig.fold import fold_weights
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
 from framework.rig.sh_rotation import rotate_sh
 from framework.rig.weight_field import WeightField, build_weight_grid
@@ -65,13 +66,11 @@ class LBSDeformerBase(Deformer):
         # as its folded sums (exactly the grid of the folded weights: both are linear in the vertex weights).
         weights, fold_index = unfolded
         full = build_weight_grid(body.rest_vertices, body.faces, weights, bounds, self.grid_resolution, self.use_cache)
-        folded = full.new_zeros(int(body.num_joints), *full.shape[1:]).index_add_(0, fold_index.to(full.device), full)
+        folded = fold_weights(full.movedim(0, -1), fold_index.cpu(), int(body.num_joints)).movedim(-1, 0)
         box = torch.as_tensor(bounds, dtype=torch.float32)
-        self.field = WeightField(folded, box)
+        self.field = WeightField(folded.contiguous(), box)
         self.unfolded = WeightField(full, box)
-        fold = torch.zeros(full.shape[0], folded.shape[0])  # [J_full, J] 0/1
-        fold[torch.arange(full.shape[0]), fold_index.cpu()] = 1.0
-        self.register_buffer("fold", fold, persistent=False)
+        self.register_buffer("fold_index", fold_index.clone(), persistent=False)  # [J_full] -> kept joint
 
     def use_aux(self, keys: frozenset[str]) -> None:
         self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
@@ -100,7 +99,8 @@ class LBSDeformerBase(Deformer):
         std = weight_std(full6)
         if not self.refines:
             return self.weights(points[:, 0]), std
-        grid7 = torch.cat([self.field.sample(points[:, :1]), full6 @ self.fold.to(full6)], dim=1)  # [N, 7, J]
+        grid6 = fold_weights(full6, self.fold_index, self.field.num_joints)  # [N, 6, J]
+        grid7 = torch.cat([self.field.sample(points[:, :1]), grid6], dim=1)  # [N, 7, J]
         w7 = self.refine(points, grid7)
         return w7[:, 0], std + (weight_std(w7[:, 1:]) - weight_std(grid7[:, 1:]))  # F_dw's own change counts too
 

@@ -53,7 +53,7 @@ class LBSResidualDeformer(LBSDeformerBase):
         return self.enabled and self.mlp is not None
 
     def refine(self, points: Tensor, w: Tensor) -> Tensor:
-        if not self.enabled or self.mlp is None:
+        if not self.refines:
             return w
         x = normalize_to_bounds(points, self.field.bounds)
         dw = self.mlp(posenc(x, self.num_freqs).to(w.dtype))  # [..., J]
