@@ -103,7 +103,10 @@ def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians:
     return stats
 
 
-def run(cfg: DictConfig) -> float | None:
+def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
+    """Train (and evaluate) the composed `cfg`. `overrides`: the overrides it was composed with, so `+scene=auto`
+    leaves alone what the user set (default: this Hydra job's command line; a caller that composes the config itself,
+    such as tools/bench_train.py, has no Hydra job and passes its own)."""
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -146,7 +149,8 @@ def run(cfg: DictConfig) -> float | None:
     )
     train_set = dm.train_set
     # the scene profile and `+scene=auto` may change the config, so it is resolved and saved after them
-    scene = prepare_scene(cfg, train_set, command_line_overrides(), progress=bool(cfg.callbacks.progress_bar))
+    user_overrides = command_line_overrides() if overrides is None else overrides
+    scene = prepare_scene(cfg, train_set, user_overrides, progress=bool(cfg.callbacks.progress_bar))
     (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     if scene.profile is not None or scene.frozen_pose:
         (out_dir / "scene.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(scene.summary())))

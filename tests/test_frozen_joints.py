@@ -154,3 +154,45 @@ def test_weight_smoothness_is_measured_over_the_whole_skeleton(body, name):
         torch.cat([gaussians.means[:, None], six_points(gaussians)], 1)), frozen_body.fold_index,
         frozen_body.num_joints)[:, 1:])  # fmt: skip
     assert float((std_full - folded_std).detach().max()) > 0.05
+
+
+def test_weight_smoothness_with_frozen_joints_adds_the_residuals_change_on_the_kept_joints(body):
+    """With F_dw on, L_w on a frozen body is std(full) + std(w) - std(grid) over the six points: the whole skeleton's
+    spread plus the change F_dw makes to the kept joints' weights. Reference: the full skeleton's weights from a field
+    bound to the unfrozen body, folded column by column, refined by the same F_dw, and plain float64 standard
+    deviations (the deformer drops the columns of kept joints that fold no other joint, whose terms cancel)."""
+    frozen_body = FrozenJointsBody(body, STILL)
+    gaussians = from_body_surface(body, num=300, sh_degree=0, seed=3, opacity=0.8)
+    gaussians = gaussians.replace(log_scales=gaussians.log_scales + 1.0)
+    lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
+    bounds = torch.stack([lo - 0.1, hi + 0.1])
+    frozen = DEFORMERS.build("lbs_residual", grid_resolution=16, use_cache=False)
+    frozen.bind(frozen_body, bounds)
+    full = DEFORMERS.build("lbs", grid_resolution=16, use_cache=False)
+    full.bind(body, bounds)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in frozen.mlp[-1].parameters():
+            p.normal_(0.0, 0.5)  # a residual far from zero
+    means = gaussians.means.clone().requires_grad_(True)
+    moved = gaussians.replace(means=means)
+    out = frozen(moved, torch.eye(4).expand(frozen_body.num_joints, 4, 4))
+
+    six = six_points(moved)  # [N, 6, 3]
+    full6 = full.weights(six).double()  # [N, 6, J_full]
+    index = frozen_body.fold_index.tolist()
+    grid6 = torch.stack([sum(full6[..., j] for j in range(len(index)) if index[j] == k)
+                         for k in range(frozen_body.num_joints)], dim=-1)  # fmt: skip
+    w6 = frozen.refine(six, grid6.float()).double()
+
+    def spread(w: torch.Tensor) -> torch.Tensor:
+        return w.std(dim=1, correction=0).sum(-1)
+
+    reference = spread(full6) + spread(w6) - spread(grid6)
+    assert float((spread(w6) - spread(grid6)).abs().max()) > 0.01  # F_dw's change is large enough to be seen
+    # tolerance: float32 fields and F_dw against float64 sums; the guard that zeroes variances under 1e-12 moves a
+    # joint's term by at most 1e-6
+    torch.testing.assert_close(out.aux["weight_std"].double(), reference.detach(), atol=2e-4, rtol=0)
+    (grad,) = torch.autograd.grad(out.aux["weight_std"].sum(), means)
+    (grad_ref,) = torch.autograd.grad(reference.sum(), means)
+    torch.testing.assert_close(grad, grad_ref, atol=2e-3, rtol=2e-3)

@@ -378,7 +378,8 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
     base = [f"+experiment={args.experiment}", f"profile={args.profile}", *args.overrides]
     forced = [f"trainer.max_steps={args.steps}", f"stages.stage1_steps={switch}", "eval.after_fit=false"]
     try:
-        cfg = compose([*base, *overrides, *forced])
+        composed = [*base, *overrides, *forced]
+        cfg = compose(composed)
     except Exception as exc:  # noqa: BLE001 - an override this commit does not know: report, do not crash
         result.note = f"skipped: {type(exc).__name__}: {str(exc).splitlines()[0][:150]}"
         return result
@@ -404,7 +405,7 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
             patched(torch.utils.data.dataloader._BaseDataLoaderIter, "__next__", clock.wrap("data fetch", real_next)),
             contextlib.redirect_stdout(sys.stderr),
         ):
-            train_entry.run(cfg)
+            train_entry.run(cfg, overrides=composed)
     except Exception as exc:  # noqa: BLE001
         result.note = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:150]}"
         return result

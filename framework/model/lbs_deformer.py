@@ -71,6 +71,9 @@ class LBSDeformerBase(Deformer):
         self.field = WeightField(folded.contiguous(), box)
         self.unfolded = WeightField(full, box)
         self.register_buffer("fold_index", fold_index.clone(), persistent=False)  # [J_full] -> kept joint
+        shared = torch.bincount(fold_index, minlength=self.field.num_joints) > 1  # [J] kept joints that fold others
+        self.register_buffer("fold_groups", torch.nonzero(shared).squeeze(-1), persistent=False)  # [G]
+        self.register_buffer("fold_members", torch.nonzero(shared[fold_index]).squeeze(-1), persistent=False)  # [M]
 
     def use_aux(self, keys: frozenset[str]) -> None:
         self.report_weight_std = self.weight_std_enabled and "weight_std" in keys
@@ -95,14 +98,16 @@ class LBSDeformerBase(Deformer):
         if self.unfolded is None:
             w7 = self.weights(points)  # [N, 7, J]
             return w7[:, 0], weight_std(w7[:, 1:])
-        full6 = self.unfolded.sample(points[:, 1:])  # [N, 6, J_full]
-        std = weight_std(full6)
+        full7 = self.unfolded.sample(points)  # [N, 7, J_full]: one lookup for all seven points
         if not self.refines:
-            return self.weights(points[:, 0]), std
-        grid6 = fold_weights(full6, self.fold_index, self.field.num_joints)  # [N, 6, J]
-        grid7 = torch.cat([self.field.sample(points[:, :1]), grid6], dim=1)  # [N, 7, J]
+            return fold_weights(full7[:, 0], self.fold_index, self.field.num_joints), weight_std(full7[:, 1:])
+        grid7 = fold_weights(full7, self.fold_index, self.field.num_joints)  # [N, 7, J]
         w7 = self.refine(points, grid7)
-        return w7[:, 0], std + (weight_std(w7[:, 1:]) - weight_std(grid7[:, 1:]))  # F_dw's own change counts too
+        # L_w = std(full) + (std(w) - std(grid)): the whole skeleton's spread plus the change F_dw makes on the kept
+        # joints. A kept joint that folds no other joint is the same column in `full` and `grid`, so its two terms
+        # cancel exactly: only the joints of the folded groups enter the difference (the same value, fewer columns).
+        folded_groups = weight_std(full7[:, 1:, self.fold_members]) - weight_std(grid7[:, 1:, self.fold_groups])
+        return w7[:, 0], weight_std(w7[:, 1:]) + folded_groups
 
     @torch.no_grad()
     def bake(self, gaussians: Gaussians) -> Tensor:

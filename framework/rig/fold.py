@@ -46,8 +46,12 @@ def fold_skeleton(
 def fold_weights(weights: Tensor, to_kept: list[int] | Tensor, num_kept: int) -> Tensor:
     """Skinning weights [..., J] -> [..., num_kept]: each joint's weight added to the kept joint that drives it."""
     index = torch.as_tensor(to_kept, dtype=torch.long, device=weights.device)
-    out = weights.new_zeros(*weights.shape[:-1], num_kept)
-    return out.index_add(-1, index, weights)
+    # a product with the [J, K] 0/1 fold matrix: the sums of `index_add` (to float rounding: each term is a weight
+    # times 1 or an exact 0), as one GEMM forward and backward, where `index_add` over the last dimension is a strided
+    # scatter (6 ms of the 89 ms of L_w's forward+backward on 10k Gaussians with frozen joints and F_dw)
+    matrix = weights.new_zeros(index.shape[0], num_kept)
+    matrix[torch.arange(index.shape[0], device=weights.device), index] = 1.0
+    return weights @ matrix
 
 
 def rebased_joints(constant_transforms: Tensor, rest_joints: Tensor, parents: Tensor | list[int]) -> Tensor:
