@@ -125,15 +125,16 @@ def check_render_config(cfg: DictConfig) -> None:
 
 def check_prune_config(cfg: DictConfig) -> None:
     """`python -m framework.prune` (and `framework.export prune=true`): tolerances are numbers >= 0 or null (the
-    prune tolerance also `auto`), counts are integers >= 0."""
+    fold and prune tolerances also `auto`), counts are integers >= 0."""
     if OmegaConf.is_missing(cfg, "ckpt"):
         raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
                           "ckpt=<run>/checkpoints/final.ckpt.")  # fmt: skip
-    for key in ("min_weight", "sh_tolerance", "fold_tolerance"):
+    for key in ("min_weight", "sh_tolerance"):
         _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite number >= 0 (null switches the step off)",
                 f"For example {key}=0.004.")  # fmt: skip
-    _expect(cfg, "prune_tolerance", lambda v: v == "auto" or (_is_number(v) and v >= 0),
-            "'auto' or a finite number >= 0 (null: no faint-Gaussian pruning)",
-            "For example prune_tolerance=0.03.")  # fmt: skip
+    for key, off, example in (("fold_tolerance", "F_a is never folded", 0.004),
+                              ("prune_tolerance", "no faint-Gaussian pruning", 0.03)):  # fmt: skip
+        _expect(cfg, key, lambda v: v == "auto" or (_is_number(v) and v >= 0),
+                f"'auto' or a finite number >= 0 (null: {off})", f"For example {key}={example}.")  # fmt: skip
     for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames")):
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")

@@ -107,6 +107,7 @@ CASES = [
     Case("render_resolution_0", "render", "`resolution=0`", ["ckpt={ckpt}", "resolution=0"]),
     Case("prune_refit_steps_negative", "prune", "`refit_steps=-1`", ["ckpt={ckpt}", "refit_steps=-1"]),
     Case("prune_tolerance_negative", "prune", "`prune_tolerance=-0.01`", ["ckpt={ckpt}", "prune_tolerance=-0.01"]),
+    Case("prune_fold_tolerance_word", "prune", "`fold_tolerance=never`", ["ckpt={ckpt}", "fold_tolerance=never"]),
 ]  # fmt: skip
 
 

@@ -20,6 +20,7 @@ from framework.scene.profile import SceneProfile
 THRESHOLDS = {
     "sh_view_dependence": [0.01, 0.02, 0.03],
     "corrector_pose_dependence": 0.008,
+    "corrector_fold_pose_dependence": 0.015,
     "weight_residual_skin_offset_px": 0.75,
     "gaussians_per_silhouette_px": 6.0,
     "min_gaussians": 1000,
@@ -48,6 +49,7 @@ def test_choices_follow_the_profile_numbers():
         "scene.frozen_joints": ["hand.L", "head"],  # still (<= 5 deg) and not the root
         "gaussians.sh_degree": 0,
         "corrector": "none",
+        "scene.fold_corrector": True,  # weak pose dependence: compaction may fold F_a
         "deformer": "lbs",
         "gaussians.num": 6000,  # 6 per silhouette pixel
         "densifier.max_gaussians": 12000,
@@ -55,6 +57,7 @@ def test_choices_follow_the_profile_numbers():
     demanding = _by_key(choose(_profile(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0,
                                         silhouette_px=100.0), THRESHOLDS, "pelvis"))  # fmt: skip
     assert demanding["gaussians.sh_degree"] == 2 and demanding["corrector"] is None and demanding["deformer"] is None
+    assert demanding["scene.fold_corrector"] is False  # 0.02 >= 0.015: F_a kept whole at compaction
     assert demanding["gaussians.num"] == 1000  # the floor
     assert _by_key(choose(_profile(view_dependence=0.5), THRESHOLDS, "pelvis"))["gaussians.sh_degree"] == 3
 
@@ -71,7 +74,8 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     choices = choose(_profile(), dict(cfg.scene.thresholds), "pelvis")
     untouched = OmegaConf.to_container(cfg, resolve=False)
     # by hand: every key auto would set, in the forms people type them
-    typed = ["scene.frozen_joints=[]", "gaussians.sh_degree=3", "corrector=latent", "deformer=lbs_residual",
+    typed = ["scene.frozen_joints=[]", "gaussians.sh_degree=3", "corrector=latent", "scene.fold_corrector=false",
+             "deformer=lbs_residual",
              "profile.num_gaussians=8000", "densifier.max_gaussians=15000"]  # fmt: skip
     done = apply_choices(cfg, choices, override_keys(typed))
     assert all(c.overridden and not c.applied for c in done)
@@ -201,3 +205,36 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     assert a[key].shape == b[key].shape and not torch.equal(a[key], b[key])  # the same Gaussians, moved
     assert refit.skin_weights_stored is False and "avatar.gaussians.params.skin_weights" not in b
     assert "refit the remaining Gaussians for 20 steps" in refit.summary()
+
+
+def test_fold_tolerance_auto_keeps_the_corrector_whole_where_the_run_asked_for_it(tmp_path_factory, monkeypatch):
+    """`fold_tolerance=auto` reads the run's `scene.fold_corrector`: false (what `+scene=auto` writes for strongly
+    pose-dependent appearance) keeps F_a exactly as trained; true (the default), or a tolerance given by hand, tries
+    the fold."""
+    from trained_avatar import tiny_checkpoint
+
+    from framework.scene.compact import prune_checkpoint
+
+    ckpt, cache = tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))  # paper_full: F_a with a random head
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
+    tmp = tmp_path_factory.mktemp("fold_auto")
+    source = torch.load(ckpt, map_location="cpu", weights_only=False)
+    assert source["hyper_parameters"]["cfg"]["scene"]["fold_corrector"] is True  # train.yaml's default
+    source["hyper_parameters"]["cfg"]["scene"]["fold_corrector"] = False
+    keep = tmp / "keep.ckpt"
+    torch.save(source, keep)
+    options = dict(measure=False, device="cpu", refit_steps=0, prune_tolerance=None, min_weight=0.0)
+    kept = prune_checkpoint(keep, tmp / "kept.pruned.ckpt", **options)
+    assert kept.corrector_fold is None and "scene.fold_corrector is false" in kept.corrector_kept
+    assert "F_a kept whole" in kept.summary()
+    compact = torch.load(tmp / "kept.pruned.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    corrector = [k for k in source["state_dict"] if k.startswith("avatar.corrector.")]
+    assert corrector and "avatar.gaussians.params.latents" in compact
+    for key in [*corrector, "avatar.gaussians.params.latents"]:  # the MLP and the latent codes, as trained
+        assert torch.equal(compact[key], source["state_dict"][key]), key
+    by_hand = prune_checkpoint(keep, tmp / "by_hand.ckpt", fold_tolerance=1.0, **options)
+    assert by_hand.corrector_kept is None and by_hand.corrector_fold["folded"]  # 1.0 accepts any fold
+    source["hyper_parameters"]["cfg"]["scene"]["fold_corrector"] = True
+    torch.save(source, keep)
+    tried = prune_checkpoint(keep, tmp / "tried.ckpt", **options)
+    assert tried.corrector_kept is None and tried.corrector_fold["tolerance"] == pytest.approx(1 / 255)

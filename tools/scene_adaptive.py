@@ -82,7 +82,8 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
             "compaction": {"removed_within_tolerance": report.removed_within_tolerance,
                            "prune_tolerance": report.prune_tolerance, "render_rms": report.render_rms,
-                           "skin_weights_stored": report.skin_weights_stored, "refit": report.refit}}  # fmt: skip
+                           "skin_weights_stored": report.skin_weights_stored, "refit": report.refit,
+                           "corrector_kept": report.corrector_kept}}  # fmt: skip
 
 
 def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int) -> dict[str, tuple[float, float]]:
@@ -150,6 +151,8 @@ def scene_table(name: str, result: dict) -> str:
 
         pruned += (f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
                    f"tolerance {fold['tolerance']:.4f}")  # fmt: skip
+    if comp.get("corrector_kept"):
+        pruned += f"; F_a kept whole ({comp['corrector_kept']})"
     if comp.get("render_rms") is not None:
         pruned += (
             f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "

@@ -9,6 +9,9 @@ Rules (thresholds in `conf/scene/auto.yaml`, under `scene.thresholds`):
 - corrector F_a: switched off (`corrector=none`) when the pose-dependent colour spread is below
   `corrector_pose_dependence` (set at the noise floor: F_a measured worth keeping in training even for a near-static
   capture; pruning folds a corrector whose output hardly varies, `framework.model.corrector_fold`).
+- F_a at compaction: kept whole (`scene.fold_corrector=false`, read by `framework.prune`'s `fold_tolerance=auto`)
+  when the pose-dependent colour spread reaches `corrector_fold_pose_dependence`. Folding checks the training poses
+  it averages over; where appearance follows the pose strongly, novel poses need F_a's per-pose output.
 - weight residual F_dw: switched off (`deformer=lbs`) when the body mesh's silhouette sits within
   `weight_residual_skin_offset_px` of the masks (the surface follows the body model's skinning).
 - Gaussian budget: `gaussians_per_silhouette_px` x the mean silhouette area in pixels at the training resolution (the
@@ -65,6 +68,7 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     floor = int(t.get("min_sh_degree", 0))
     degree = max(floor, sum(profile.view_dependence > x for x in sh_levels))
     corrector_need = profile.pose_dependence >= float(t["corrector_pose_dependence"])
+    keep_corrector = profile.pose_dependence >= float(t["corrector_fold_pose_dependence"])
     residual_need = profile.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
     num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
     cap = int(round(float(t["max_gaussians_factor"]) * num))
@@ -82,6 +86,13 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
             f"pose dependence {profile.pose_dependence:.4f}",
             f"{'>=' if corrector_need else '<'} {t['corrector_pose_dependence']}: "
             f"{'F_a kept' if corrector_need else 'F_a off'}",
+        ),  # fmt: skip
+        Choice(
+            "scene.fold_corrector",
+            not keep_corrector,
+            f"pose dependence {profile.pose_dependence:.4f}",
+            f"{'>=' if keep_corrector else '<'} {t['corrector_fold_pose_dependence']}: "
+            f"{'F_a kept whole at compaction' if keep_corrector else 'compaction may fold F_a'}",
         ),  # fmt: skip
         Choice(
             "deformer",

@@ -56,6 +56,19 @@ def resolve_prune_tolerance(tolerance: float | str | None, refit_steps: int) -> 
     return None if tolerance is None else float(tolerance)
 
 
+def resolve_fold_tolerance(tolerance: float | str | None, run_cfg) -> tuple[float | None, str | None]:
+    """(tolerance, why F_a is kept whole or None). `"auto"`: `DEFAULT_FOLD_TOLERANCE`, or None (no fold) when the run
+    was trained with `scene.fold_corrector: false` (`+scene=auto` sets it where the scene's appearance is strongly
+    pose-dependent, `framework.scene.auto`); a number as given; None as None. A run from before the key folds."""
+    if tolerance != "auto":
+        return (None if tolerance is None else float(tolerance)), None
+    scene = run_cfg.get("scene") or {}
+    if scene.get("fold_corrector", True):
+        return DEFAULT_FOLD_TOLERANCE, None
+    return None, ("the run's scene.fold_corrector is false (`+scene=auto` measured strongly pose-dependent "
+                  "appearance); fold_tolerance=0.00392 folds it anyway")  # fmt: skip
+
+
 @dataclass
 class ModelMeasure:
     """Size, speed and quality of one model."""
@@ -87,6 +100,7 @@ class PruneReport:
     render_rms: float | None = None  # the compact model's checked training frames against the original's
     skin_weights_stored: bool | None = True  # False: the body's field at the means, rebuilt on loading; None: no body
     refit: dict[str, Any] | None = None  # RefitResult as a dict when the Gaussians were refitted after pruning
+    corrector_kept: str | None = None  # why F_a was kept whole without a fold being tried (`resolve_fold_tolerance`)
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
@@ -106,6 +120,8 @@ class PruneReport:
             lines.append(f"[splatrig] F_a {fold_outcome(f)}: training frames render {f['render_rms']:.5f} RMS apart "
                          f"(fold_tolerance {f['tolerance']:.4g}); "
                          f"largest spread of its output over the training poses: {spread}")  # fmt: skip
+        if self.corrector_kept:
+            lines.append(f"[splatrig] F_a kept whole: {self.corrector_kept}")
         if self.render_rms is not None:
             before_refit = " before the refit" if self.refit else ""
             lines.append(f"[splatrig] the compact model renders the checked training frames {self.render_rms:.5f} "
@@ -247,6 +263,11 @@ def check_batches(module, dm, max_frames: int = CHECK_FRAMES) -> list:
     return [collate_frames([dataset[i]]).to(module.device) for i in distinct_frame_items(dataset, max_frames)]
 
 
+def has_pose_corrector(avatar) -> bool:
+    """Whether the avatar has a learned pose-driven corrector (something a fold could remove)."""
+    return avatar.body is not None and any(True for _ in avatar.corrector.parameters())
+
+
 def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE, max_frames: int = CHECK_FRAMES,
                           check: RenderCheck | None = None, partial: bool = False) -> CorrectorFold | None:  # fmt: skip
     """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
@@ -255,7 +276,7 @@ def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE,
     from framework.scene.auto import group_option
 
     avatar = module.avatar
-    if avatar.body is None or not any(True for _ in avatar.corrector.parameters()):
+    if not has_pose_corrector(avatar):
         return None
     batches = check.batches if check is not None else check_batches(module, dm, max_frames)
     sh_degree = check.sh_degree if check is not None else module.sh_degree(module.trained_steps())
@@ -348,14 +369,15 @@ def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path, ski
 def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, *,
                      min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
-                     device: str | None = None, fold_tolerance: float | None = DEFAULT_FOLD_TOLERANCE,
+                     device: str | None = None, fold_tolerance: float | str | None = "auto",
                      prune_tolerance: float | str | None = "auto",
                      refit_steps: int = DEFAULT_REFIT_STEPS) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers).
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
-    F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it; Gaussians that never
+    F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it (`"auto"`: 1/255, or no
+    fold where the run's scene profile asked to keep F_a whole, `resolve_fold_tolerance`); Gaussians that never
     reach `min_weight` removed, then others (the smallest mean squared blending weight per covered pixel first)
     while the frames stay within `prune_tolerance` (`"auto"`: 0.03 with a refit, 0.7/255 without,
     `resolve_prune_tolerance`); negligible SH bands dropped; then, if F_a was kept, folded for as many Gaussians as
@@ -371,6 +393,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
         raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     module = load_checkpoint_module(ckpt_path, device)
+    fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
     dm = checkpoint_datamodule(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     reps = repeats if measure else 0
@@ -404,7 +427,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
                        baked, str(device), None if fold is None else asdict(fold),
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
-                       skin_weights if has_weights else None, None if refit is None else asdict(refit))  # fmt: skip
+                       skin_weights if has_weights else None, None if refit is None else asdict(refit),
+                       corrector_kept if has_pose_corrector(compact.avatar) else None)  # fmt: skip
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
