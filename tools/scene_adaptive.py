@@ -152,7 +152,7 @@ def scene_table(name: str, result: dict) -> str:
         pruned += (f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
                    f"tolerance {fold['tolerance']:.4f}")  # fmt: skip
     if comp.get("corrector_kept"):
-        pruned += f"; F_a kept whole ({comp['corrector_kept']})"
+        pruned += f"; F_a kept whole: {comp['corrector_kept']}"
     if comp.get("render_rms") is not None:
         pruned += (
             f"; the compact model renders the checked training frames {comp['render_rms']:.4f} RMS from "
