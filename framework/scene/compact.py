@@ -66,7 +66,7 @@ def resolve_fold_tolerance(tolerance: float | str | None, run_cfg) -> tuple[floa
     if scene.get("fold_corrector", True):
         return DEFAULT_FOLD_TOLERANCE, None
     return None, ("the run's scene.fold_corrector is false (`+scene=auto` measured strongly pose-dependent "
-                  "appearance); fold_tolerance=0.00392 folds it anyway")  # fmt: skip
+                  f"appearance); fold_tolerance={DEFAULT_FOLD_TOLERANCE:.3g} folds it anyway")  # fmt: skip
 
 
 @dataclass
