@@ -58,15 +58,15 @@ def resolve_prune_tolerance(tolerance: float | str | None, refit_steps: int) -> 
 
 def resolve_fold_tolerance(tolerance: float | str | None, run_cfg) -> tuple[float | None, str | None]:
     """(tolerance, why F_a is kept whole or None). `"auto"`: `DEFAULT_FOLD_TOLERANCE`, or None (no fold) when the run
-    was trained with `scene.fold_corrector: false` (`+scene=auto` sets it where the scene's appearance is strongly
-    pose-dependent, `framework.scene.auto`); a number as given; None as None. A run from before the key folds."""
+    was trained with `scene.fold_corrector: false` (`+scene=auto` sets it where the scene's appearance depends on
+    the pose, `framework.scene.auto`); a number as given; None as None. A run from before the key folds."""
     if tolerance != "auto":
         return (None if tolerance is None else float(tolerance)), None
     scene = run_cfg.get("scene") or {}
     if scene.get("fold_corrector", True):
         return DEFAULT_FOLD_TOLERANCE, None
-    return None, ("the run's scene.fold_corrector is false (`+scene=auto` measured strongly pose-dependent "
-                  f"appearance); fold_tolerance={DEFAULT_FOLD_TOLERANCE:.3g} folds it anyway")  # fmt: skip
+    return None, ("the run's scene.fold_corrector is false (`+scene=auto` measured pose-dependent appearance)"
+                  f"; fold_tolerance={DEFAULT_FOLD_TOLERANCE:.3g} folds it anyway")  # fmt: skip
 
 
 @dataclass
