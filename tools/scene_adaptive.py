@@ -65,6 +65,7 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     """paper_full measured and auto pruned (sizes and PSNR before and after; `prune_options` go to
     `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
     interleaved over `rounds` rounds (medians)."""
+    from framework.evaluation.run_cost import interleaved_fps
     from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
@@ -76,7 +77,7 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device(), **(prune_options or {}))
     measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
     fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
-                          rounds)  # fmt: skip
+                          rounds, _device())  # fmt: skip
     for name, (pose_fps, view_fps) in fps.items():
         measures[name].update(novel_pose_fps=pose_fps, novel_view_fps=view_fps)
     return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
@@ -84,31 +85,6 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
                            "prune_tolerance": report.prune_tolerance, "render_rms": report.render_rms,
                            "skin_weights_stored": report.skin_weights_stored, "refit": report.refit,
                            "corrector_kept": report.corrector_kept}}  # fmt: skip
-
-
-def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int) -> dict[str, tuple[float, float]]:
-    """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
-    (tools/bench_render.py's rules, baked weights). Why interleaved: a shared 2-core VM's speed drifts by 20-50 %
-    over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour later, at 52-67 ms), and
-    timing the models one after the other would turn that drift into a difference between them."""
-    import statistics
-
-    from framework.evaluation.run_cost import render_fps
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module
-
-    loaded = {}
-    for name, path in ckpts.items():
-        module = load_checkpoint_module(path, device=_device())
-        module.bake_weights()
-        loaded[name] = (module, checkpoint_datamodule(module))
-    for module, dm in loaded.values():  # untimed: the first frames a process renders run slower
-        render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats)
-    times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
-    for _ in range(rounds):
-        for name, (module, dm) in loaded.items():
-            times[name].append(render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats))
-    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
-            for name, ts in times.items()}  # fmt: skip
 
 
 def _device() -> str:

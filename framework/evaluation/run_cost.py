@@ -81,6 +81,31 @@ def render_fps(module, dm, split: str, warmup: int = 3, repeats: int = 10) -> tu
     return pose_fps, view_fps
 
 
+def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int,
+                    device: str = "cpu") -> dict[str, tuple[float, float]]:  # fmt: skip
+    """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
+    (`render_fps`, baked weights). Why interleaved: a shared 2-core VM's speed drifts by 20-50 % over minutes
+    (measured: the same model's novel-pose frame at 38 ms and, an hour later, at 52-67 ms), and timing the models one
+    after the other would turn that drift into a difference between them."""
+    import statistics
+
+    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module
+
+    loaded = {}
+    for name, path in ckpts.items():
+        module = load_checkpoint_module(path, device=device)
+        module.bake_weights()
+        loaded[name] = (module, checkpoint_datamodule(module))
+    for module, dm in loaded.values():  # untimed: the first frames a process renders run slower
+        render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats)
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
+    for _ in range(rounds):
+        for name, (module, dm) in loaded.items():
+            times[name].append(render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats))
+    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
+            for name, ts in times.items()}  # fmt: skip
+
+
 def run_cost(module, dm, checkpoint: Path | None, train_seconds: float, steps: int, fps_frames: int,
              fps_warmup: int = 3) -> dict[str, Any]:  # fmt: skip
     """The results.json fields of a run's cost (see `framework.evaluation.run_record`); fps are skipped (None) when
