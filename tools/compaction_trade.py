@@ -82,6 +82,13 @@ def _file_name(setting: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in setting)
 
 
+def _yaml_value(value) -> str:
+    """As a command line would write it: null, a short number, or the word."""
+    if value is None:
+        return "null"
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
 def _corrector_rows(ckpt: Path) -> int:
     """Rows F_a runs on in a stored model: none without a corrector, `active_rows` after a partial fold, else all."""
     sd = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
@@ -135,7 +142,7 @@ def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], war
         m = measures[name]
         rows.append(TradeRow(
             setting=name,
-            overrides=" ".join(f"{k}={v}" for k, v in settings[name].items()) or "-",
+            overrides=" ".join(f"{k}={_yaml_value(v)}" for k, v in settings[name].items()) or "-",
             num_gaussians=int(m["num_gaussians"]),
             corrector_rows=_corrector_rows(path),
             smaller=ref.model_bytes / m["model_bytes"],
@@ -185,12 +192,15 @@ def plot(rows: list[TradeRow], path: Path, target_fps: float, budget_db: float, 
                     label=f"target: >= {target_fps:g}x at < {budget_db:g} dB")  # fmt: skip
     ax.axhline(0.0, color="grey", lw=0.8)
     ax.axvline(1.0, color="grey", lw=0.8)
-    for r in rows:
+    for i, r in enumerate(rows):
         ax.plot([r.fps_ratio] * 2, [r.psnr_novel_view, r.psnr_novel_pose], color="grey", lw=0.8, zorder=1)
         ax.scatter([r.fps_ratio], [r.psnr_novel_view], marker="o", color="tab:blue", zorder=2)
         ax.scatter([r.fps_ratio], [r.psnr_novel_pose], marker="x", color="tab:red", zorder=2)
-        ax.annotate(r.setting, (r.fps_ratio, max(r.psnr_novel_view, r.psnr_novel_pose)), textcoords="offset points",
-                    xytext=(4, 4), fontsize=8)  # fmt: skip
+        # labels above the upper marker and below the lower one in turn, so neighbours in x do not overprint
+        upper = i % 2 == 0
+        y = max(r.psnr_novel_view, r.psnr_novel_pose) if upper else min(r.psnr_novel_view, r.psnr_novel_pose)
+        ax.annotate(r.setting, (r.fps_ratio, y), textcoords="offset points", xytext=(4, 5 if upper else -12),
+                    fontsize=8)  # fmt: skip
     ax.scatter([], [], marker="o", color="tab:blue", label="novel view")
     ax.scatter([], [], marker="x", color="tab:red", label="novel pose")
     ax.set_xlim(min(min(xs), 1.0) - 0.05, x_hi)
