@@ -62,12 +62,15 @@ def test_trade_rows_are_the_compactions_they_name(tool, tmp_path_factory, monkey
     assert float(folded["fps_ratio"]) > 0 and float(folded["smaller"]) > float(kept["smaller"])  # no MLP, no latents
     assert (out / "compaction_trade.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| untouched |" in (out / "compaction_trade.md").read_text()
-    # resumable: a second run reuses the compact models it finds
+    # resumable: a second run reuses the compact model made with the same options, and remakes one whose options
+    # changed under the same name
     stamp = (out / "untouched.ckpt").stat().st_mtime_ns
-    tool.main(["--reference", str(ckpt), "--ckpt", str(ckpt), "--out", str(out), "--warmup", "1", "--repeats", "1",
-               "--rounds", "1", "--setting=untouched=fold_tolerance=null,prune_tolerance=null,min_weight=0.0,"
-               "sh_tolerance=0.0,refit_steps=0"])  # fmt: skip
+    again = ["--reference", str(ckpt), "--ckpt", str(ckpt), "--out", str(out), "--warmup", "1", "--repeats", "1",
+             "--rounds", "1", flags[0]]  # fmt: skip
+    tool.main(again)
     assert (out / "untouched.ckpt").stat().st_mtime_ns == stamp
+    tool.main([*again[:-1], flags[0].replace("refit_steps=0", "refit_steps=2")])
+    assert (out / "untouched.ckpt").stat().st_mtime_ns != stamp
 
 
 def test_missing_checkpoint_is_one_clear_error(tool, tmp_path):

@@ -99,7 +99,8 @@ def _corrector_rows(ckpt: Path) -> int:
 
 
 def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -> dict[str, tuple[Path, dict]]:
-    """Each setting's compact model and report (as a dict), made once (resumable)."""
+    """Each setting's compact model and report (as a dict), made once: a model whose report names the same source
+    and options is reused (an interrupted run resumes), anything else is compacted again."""
     from framework.scene.compact import prune_checkpoint
 
     made = {}
@@ -107,13 +108,16 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
         if name == AS_TRAINED:
             continue
         path, report_path = out / f"{_file_name(name)}.ckpt", out / f"{_file_name(name)}.json"
-        if not (path.is_file() and report_path.is_file()):
+        made_by = {"source": str(ckpt.resolve()), "options": options}
+        stored = json.loads(report_path.read_text()) if report_path.is_file() else {}
+        if not (path.is_file() and stored.get("made_by") == made_by):
             print(f"[compaction_trade] {name}: framework.prune {options or '(defaults)'}", flush=True)
             report = prune_checkpoint(ckpt, path, repeats=0, device=device, **options)
+            stored = {"made_by": made_by, **report.to_dict()}
             tmp = report_path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(report.to_dict(), indent=1))
+            tmp.write_text(json.dumps(stored, indent=1))
             os.replace(tmp, report_path)
-        made[name] = (path, json.loads(report_path.read_text()))
+        made[name] = (path, stored)
     return made
 
 
