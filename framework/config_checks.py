@@ -136,5 +136,6 @@ def check_prune_config(cfg: DictConfig) -> None:
                               ("prune_tolerance", "no faint-Gaussian pruning", 0.03)):  # fmt: skip
         _expect(cfg, key, lambda v: v == "auto" or (_is_number(v) and v >= 0),
                 f"'auto' or a finite number >= 0 (null: {off})", f"For example {key}={example}.")  # fmt: skip
-    for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames")):
+    for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames"),
+                      ("rounds", "interleaved timing rounds")):  # fmt: skip
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")

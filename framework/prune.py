@@ -30,7 +30,7 @@ def prune_from_config(cfg: DictConfig):
     report = prune_checkpoint(
         cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
         max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup), repeats=int(cfg.repeats),
-        device=cfg.device, fold_tolerance=cfg.fold_tolerance,
+        rounds=int(cfg.rounds), device=cfg.device, fold_tolerance=cfg.fold_tolerance,
         prune_tolerance=cfg.prune_tolerance,
         refit_steps=int(cfg.refit_steps),
     )  # fmt: skip

@@ -84,9 +84,10 @@ def render_fps(module, dm, split: str, warmup: int = 3, repeats: int = 10) -> tu
 def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int,
                     device: str = "cpu") -> dict[str, tuple[float, float]]:  # fmt: skip
     """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
-    (`render_fps`, baked weights). Why interleaved: a shared 2-core VM's speed drifts by 20-50 % over minutes
-    (measured: the same model's novel-pose frame at 38 ms and, an hour later, at 52-67 ms), and timing the models one
-    after the other would turn that drift into a difference between them."""
+    (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared 2-core
+    VM's speed drifts by 20-50 % over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour
+    later, at 52-67 ms), and timing the models one after the other would turn that drift into a difference between
+    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x)."""
     import statistics
 
     from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module
@@ -95,13 +96,17 @@ def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: i
     for name, path in ckpts.items():
         module = load_checkpoint_module(path, device=device)
         module.bake_weights()
-        loaded[name] = (module, checkpoint_datamodule(module))
-    for module, dm in loaded.values():  # untimed: the first frames a process renders run slower
-        render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats)
+        dm = checkpoint_datamodule(module)
+        split = timing_split(dm)
+        if split is None:
+            raise SplatrigError(f"{path}: its data has none of the splits {TIMING_SPLITS} to time frames on.")
+        loaded[name] = (module, dm, split)
+    for module, dm, split in loaded.values():  # untimed: the first frames a process renders run slower
+        render_fps(module, dm, split, warmup=warmup, repeats=repeats)
     times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
     for _ in range(rounds):
-        for name, (module, dm) in loaded.items():
-            times[name].append(render_fps(module, dm, "novel_pose", warmup=warmup, repeats=repeats))
+        for name, (module, dm, split) in loaded.items():
+            times[name].append(render_fps(module, dm, split, warmup=warmup, repeats=repeats))
     return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
             for name, ts in times.items()}  # fmt: skip
 

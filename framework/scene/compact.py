@@ -20,7 +20,7 @@ import torch
 
 from framework.atomic import atomic_path
 from framework.errors import SplatrigError
-from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps
+from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, model_bytes, render_fps
 from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
@@ -371,9 +371,10 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
                      device: str | None = None, fold_tolerance: float | str | None = "auto",
                      prune_tolerance: float | str | None = "auto",
-                     refit_steps: int = DEFAULT_REFIT_STEPS) -> PruneReport:  # fmt: skip
+                     refit_steps: int = DEFAULT_REFIT_STEPS, rounds: int = 5) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
-    measure the model before and after (the written file is loaded back for the "after" numbers).
+    measure the model before and after (the written file is loaded back for the "after" numbers; frame rates: both
+    files timed interleaved, `rounds` rounds of `repeats` frames, `framework.evaluation.run_cost.interleaved_fps`).
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it (`"auto"`: 1/255, or no
@@ -396,8 +397,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
     dm = checkpoint_datamodule(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    reps = repeats if measure else 0
-    before = measure_module(module, dm, warmup=warmup, repeats=reps, file_bytes=ckpt_path.stat().st_size) \
+    before = measure_module(module, dm, repeats=0, file_bytes=ckpt_path.stat().st_size) \
         if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
     module.bake_weights()
     baked = bake_weight_residual(module)
@@ -422,8 +422,12 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     has_weights = "skin_weights" in module.avatar.gaussians.params  # a static scene's Gaussians have none
     compact = load_checkpoint_module(out, device)
-    after = measure_module(compact, dm, warmup=warmup, repeats=reps, file_bytes=out.stat().st_size) \
+    after = measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
+    if measure and repeats > 0 and rounds > 0:
+        fps = interleaved_fps({"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device))
+        before.novel_pose_fps, before.novel_view_fps = fps["before"]
+        after.novel_pose_fps, after.novel_view_fps = fps["after"]
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
                        baked, str(device), None if fold is None else asdict(fold),
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
