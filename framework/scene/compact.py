@@ -20,7 +20,7 @@ import torch
 
 from framework.atomic import atomic_path
 from framework.errors import SplatrigError
-from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, model_bytes, render_fps
+from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, model_bytes, render_fps, timing_split
 from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
@@ -424,7 +424,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     compact = load_checkpoint_module(out, device)
     after = measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
-    if measure and repeats > 0 and rounds > 0:
+    if measure and repeats > 0 and rounds > 0 and timing_split(dm) is not None:  # no held-out split: no frame rates
         fps = interleaved_fps({"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device))
         before.novel_pose_fps, before.novel_view_fps = fps["before"]
         after.novel_pose_fps, after.novel_view_fps = fps["after"]
