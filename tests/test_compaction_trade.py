@@ -73,6 +73,15 @@ def test_trade_rows_are_the_compactions_they_name(tool, tmp_path_factory, monkey
     assert (out / "untouched.ckpt").stat().st_mtime_ns != stamp
 
 
+def test_target_is_met_inside_the_budget_and_no_loss_means_none(tool):
+    row = tool.TradeRow("s", "-", 1, 1, 2.0, psnr_novel_view=-0.29, psnr_novel_pose=0.1, novel_pose_fps=1.0,
+                        fps_ratio=1.5)  # fmt: skip
+    assert row.meets(1.5, 0.3) and not row.meets(1.51, 0.3) and not row.meets(1.5, 0.29)
+    assert not row.meets(1.0, 0.0)  # the glossy scene's "no loss": -0.29 dB is a loss
+    row.psnr_novel_view = 0.0
+    assert row.meets(1.0, 0.0) and tool.target_words(1.0, 0.0) == ">= 1x at no loss"
+
+
 def test_missing_checkpoint_is_one_clear_error(tool, tmp_path):
     with pytest.raises(SystemExit, match="--ckpt .*no such checkpoint file"):
         tool.main(["--reference", __file__, "--ckpt", str(tmp_path / "b.ckpt")])
