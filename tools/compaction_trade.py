@@ -106,8 +106,9 @@ def _corrector_rows(ckpt: Path) -> int:
 
 def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -> dict[str, tuple[Path, dict]]:
     """Each setting's compact model and report (as a dict), made once: a model whose report names the same source
-    and options is reused (an interrupted run resumes), anything else is compacted again."""
-    from framework.scene.compact import prune_checkpoint
+    and options is reused (an interrupted run resumes), anything else is compacted again. The report's "after" is
+    the compact model's own measure (sizes and PSNR); the source is measured once, by `trade`, not per setting."""
+    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
 
     made = {}
     for name, options in settings.items():
@@ -118,8 +119,10 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
         stored = json.loads(report_path.read_text()) if report_path.is_file() else {}
         if not (path.is_file() and stored.get("made_by") == made_by):
             print(f"[compaction_trade] {name}: framework.prune {options or '(defaults)'}", flush=True)
-            report = prune_checkpoint(ckpt, path, repeats=0, device=device, **options)
-            stored = {"made_by": made_by, **report.to_dict()}
+            report = prune_checkpoint(ckpt, path, measure=False, device=device, **options)
+            compact = load_checkpoint_module(path, device=device)
+            after = measure_module(compact, checkpoint_datamodule(compact), repeats=0, file_bytes=path.stat().st_size)
+            stored = {"made_by": made_by, **report.to_dict(), "after": asdict(after)}
             tmp = report_path.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(stored, indent=1))
             os.replace(tmp, report_path)
