@@ -19,8 +19,8 @@ import torch
 from tqdm.auto import tqdm
 
 from framework.atomic import atomic_path, atomic_write_text
-from framework.build import build_component
 from framework.errors import SplatrigError, reported_as_message
+from framework.lightning.trained_model import datamodule_for, load_module
 from framework.paths import beside_checkpoint
 from framework.plugins import format_table, load_plugins
 from framework.registry import METRICS
@@ -135,39 +135,6 @@ def summary_table(summary: dict[str, float], splits: list[str], metrics: list[st
                 rows.append((label, *[f"{summary[f'{prefix}{m}']:.4f}" if f"{prefix}{m}" in summary else "-"
                                       for m in metrics]))  # fmt: skip
     return format_table(rows, ("split", *metrics))
-
-
-def load_module(ckpt: str | Path, map_location: str = "cpu"):
-    """The trained model of a checkpoint, rebuilt from the config stored in it (errors name the file and the fix)."""
-    from framework.lightning.checkpoint_io import CheckpointError, read_checkpoint
-    from framework.lightning.module import SplatModule
-
-    checkpoint = read_checkpoint(ckpt, map_location)
-    load_plugins()
-    hparams = checkpoint["hyper_parameters"]
-    module = SplatModule(hparams["cfg"], hparams["data_info"])
-    module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage
-    try:
-        module.load_state_dict(checkpoint["state_dict"])
-    except RuntimeError as exc:
-        lines = str(exc).strip().splitlines()
-        detail = lines[min(1, len(lines) - 1)].strip()
-        raise CheckpointError(
-            f"ckpt={ckpt}: its tensors do not fit the model its own config builds ({detail}); it was written by an "
-            f"incompatible version of splatrig or edited. Train it again."
-        ) from None
-    return module
-
-
-def datamodule_for(module):
-    from framework.lightning.data import FrameDataModule
-
-    cfg = module.cfg
-
-    def build_split(split: str):
-        return build_component("dataset", cfg["data"], group="data", split=split)
-
-    return FrameDataModule(build_split, val_split=cfg["eval"]["val_split"])
 
 
 def main() -> int:

@@ -29,9 +29,9 @@ def main() -> int:
         from framework.animation.sources import load_motion
         from framework.data.motion_files import Motion
         from framework.errors import SplatrigError
-        from framework.evaluate import datamodule_for, load_module
         from framework.formats.animatable import write_package
         from framework.formats.splat_ply import write_splat_ply
+        from framework.lightning.trained_model import datamodule_for, load_module
 
         with reported_as_message():
             ckpt = str(cfg.ckpt)

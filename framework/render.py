@@ -56,7 +56,7 @@ def render_from_config(cfg) -> Path:
 
     from framework.atomic import atomic_path
     from framework.config_checks import check_render_config
-    from framework.evaluate import datamodule_for, load_module
+    from framework.lightning.trained_model import datamodule_for, load_module
 
     check_render_config(cfg)
     module = load_module(cfg.ckpt)

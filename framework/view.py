@@ -19,7 +19,7 @@ def main() -> int:
         import torch
 
         from framework.animation.camera_paths import subject_view
-        from framework.evaluate import datamodule_for, load_module
+        from framework.lightning.trained_model import datamodule_for, load_module
         from framework.viewer.app import ViewerApp
         from framework.viewer.session import ViewerSession
 

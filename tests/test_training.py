@@ -221,7 +221,7 @@ PAPER_TINY = ["+experiment=paper_full", "body=procedural", "data.body=procedural
 def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path: Path, monkeypatch):
     """The whole recipe through a real trainer: stage 1, the switch to stage 2 (corrector and F_dw on, the densifier's
     reset count restarted), weight baking into final.ckpt, and the novel-view and novel-pose evaluation."""
-    from framework.evaluate import load_module
+    from framework.lightning.trained_model import load_module
 
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path / "cache"))
     env = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -58,7 +58,7 @@ def tiny_checkpoint(root: Path) -> tuple[Path, Path]:
 
 def load_tiny(ckpt: Path):
     """(module in eval mode, its datamodule), loaded in this process (SPLATRIG_CACHE_DIR must point at the cache)."""
-    from framework.evaluate import datamodule_for, load_module
+    from framework.lightning.trained_model import datamodule_for, load_module
 
     module = load_module(ckpt)
     module.eval()

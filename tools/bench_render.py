@@ -63,7 +63,7 @@ def trained_avatar(ckpt: str, device: str) -> tuple[Avatar, int]:
     """The checkpoint's avatar with baked weights, and the SH degree its stored coefficients hold: a compact model from
     `framework.export prune=true` may keep fewer bands than paper_full's 3; a short run's bands that its schedule had
     not switched on yet are zero and are timed all the same, as a full run's would be."""
-    from framework.evaluate import load_module
+    from framework.lightning.trained_model import load_module
 
     module = load_module(ckpt, map_location=device)
     module.bake_weights()

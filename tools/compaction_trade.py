@@ -108,7 +108,8 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
     """Each setting's compact model and report (as a dict), made once: a model whose report names the same source
     and options is reused (an interrupted run resumes), anything else is compacted again. The report's "after" is
     the compact model's own measure (sizes and PSNR); the source is measured once, by `trade`, not per setting."""
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
+    from framework.lightning.trained_model import datamodule_for, load_module
+    from framework.scene.compact import measure_module, prune_checkpoint
 
     made = {}
     for name, options in settings.items():
@@ -120,8 +121,8 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
         if not (path.is_file() and stored.get("made_by") == made_by):
             print(f"[compaction_trade] {name}: framework.prune {options or '(defaults)'}", flush=True)
             report = prune_checkpoint(ckpt, path, measure=False, device=device, **options)
-            compact = load_checkpoint_module(path, device=device)
-            after = measure_module(compact, checkpoint_datamodule(compact), repeats=0, file_bytes=path.stat().st_size)
+            compact = load_module(path, map_location=device)
+            after = measure_module(compact, datamodule_for(compact), repeats=0, file_bytes=path.stat().st_size)
             stored = {"made_by": made_by, **report.to_dict(), "after": asdict(after)}
             tmp = report_path.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(stored, indent=1))
@@ -134,20 +135,21 @@ def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], war
           rounds: int, device: str) -> list[TradeRow]:  # fmt: skip
     """Compact, measure PSNR, time interleaved; one row per setting (the model as trained included if asked)."""
     from framework.evaluation.run_cost import interleaved_fps
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module
+    from framework.lightning.trained_model import datamodule_for, load_module
+    from framework.scene.compact import measure_module
 
     out.mkdir(parents=True, exist_ok=True)
     made = compact_all(ckpt, out, settings, device)
-    ref_module = load_checkpoint_module(reference, device=device)
-    ref = measure_module(ref_module, checkpoint_datamodule(ref_module), repeats=0)
+    ref_module = load_module(reference, map_location=device)
+    ref = measure_module(ref_module, datamodule_for(ref_module), repeats=0)
     paths = {name: made[name][0] if name in made else ckpt for name in settings}
     measures = {}
     for name, path in paths.items():
         if name in made:
             measures[name] = made[name][1]["after"]
         else:
-            module = load_checkpoint_module(path, device=device)
-            measures[name] = asdict(measure_module(module, checkpoint_datamodule(module), repeats=0))
+            module = load_module(path, map_location=device)
+            measures[name] = asdict(measure_module(module, datamodule_for(module), repeats=0))
     print(f"[compaction_trade] timing {len(paths) + 1} models interleaved, {rounds} rounds", flush=True)
     fps = interleaved_fps({"reference": reference, **paths}, warmup, repeats, rounds, device)
     rows = []

@@ -66,11 +66,12 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
     interleaved over `rounds` rounds (medians)."""
     from framework.evaluation.run_cost import interleaved_fps
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module, measure_module, prune_checkpoint
+    from framework.lightning.trained_model import datamodule_for, load_module
+    from framework.scene.compact import measure_module, prune_checkpoint
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
-    module = load_checkpoint_module(full_ckpt, device=_device())
-    dm = checkpoint_datamodule(module)
+    module = load_module(full_ckpt, map_location=_device())
+    dm = datamodule_for(module)
     full = measure_module(module, dm, repeats=0, file_bytes=full_ckpt.stat().st_size)  # fps: interleaved below
     auto_ckpt = scene_dir / "auto" / "checkpoints" / "final.ckpt"
     pruned_ckpt = auto_ckpt.with_name("final.pruned.ckpt")

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from framework.errors import SplatrigError
+from framework.lightning.trained_model import datamodule_for, load_module
 from framework.model.frame_timing import time_frames
 from framework.types import FrameBatch
 
@@ -90,13 +91,11 @@ def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: i
     them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x)."""
     import statistics
 
-    from framework.scene.compact import checkpoint_datamodule, load_checkpoint_module
-
     loaded = {}
     for name, path in ckpts.items():
-        module = load_checkpoint_module(path, device=device)
+        module = load_module(path, map_location=device)
         module.bake_weights()
-        dm = checkpoint_datamodule(module)
+        dm = datamodule_for(module)
         split = timing_split(dm)
         if split is None:
             raise SplatrigError(f"{path}: its data has none of the splits {TIMING_SPLITS} to time frames on.")

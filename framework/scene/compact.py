@@ -21,6 +21,7 @@ import torch
 from framework.atomic import atomic_path
 from framework.errors import SplatrigError
 from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, model_bytes, render_fps, timing_split
+from framework.lightning.trained_model import datamodule_for, load_module
 from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
 from framework.model.pruning import (
     DEFAULT_MIN_WEIGHT,
@@ -176,27 +177,6 @@ def _mib(n: int | None) -> str:
 
 def _num(x: float | None, digits: int = 1) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
-
-
-# ------------------------------------------------------------------------------------------------- loading
-def load_checkpoint_module(path: str | Path, device: str = "cpu"):
-    from framework.lightning.module import SplatModule
-    from framework.plugins import load_plugins
-
-    if not Path(path).is_file():
-        raise SplatrigError(f"ckpt={path}: no such checkpoint file (look in a run's checkpoints/ folder).")
-    load_plugins()
-    module = SplatModule.load_from_checkpoint(str(path), map_location=device, weights_only=False)
-    return module.eval()
-
-
-def checkpoint_datamodule(module):
-    """The splits of the dataset the module was trained on (rebuilt from its stored config)."""
-    from framework.build import build_component
-    from framework.lightning.data import FrameDataModule
-
-    data = module.cfg["data"]
-    return FrameDataModule(lambda split: build_component("dataset", data, group="data", split=split))
 
 
 # ------------------------------------------------------------------------------------------------- measuring
@@ -393,9 +373,9 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     if out.resolve() == ckpt_path.resolve():
         raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    module = load_checkpoint_module(ckpt_path, device)
+    module = load_module(ckpt_path, device)
     fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
-    dm = checkpoint_datamodule(module)
+    dm = datamodule_for(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     before = measure_module(module, dm, repeats=0, file_bytes=ckpt_path.stat().st_size) \
         if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
@@ -421,7 +401,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     skin_weights = not rebuildable_skin_weights(module)
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     has_weights = "skin_weights" in module.avatar.gaussians.params  # a static scene's Gaussians have none
-    compact = load_checkpoint_module(out, device)
+    compact = load_module(out, device)
     after = measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
     if measure and repeats > 0 and rounds > 0 and timing_split(dm) is not None:  # no held-out split: no frame rates
