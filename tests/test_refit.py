@@ -3,13 +3,18 @@ on the training frames, and gives back the parameters it started from when the l
 
 from __future__ import annotations
 
+import inspect
+from pathlib import Path
+
 import pytest
 import torch
+import yaml
 from trained_avatar import load_tiny, tiny_checkpoint
 
 from framework.lightning.data import collate_frames
 from framework.model.pruning import prune_gaussians
 from framework.model.refit import REFIT_KEYS, refit_gaussians
+from framework.scene.compact import DEFAULT_REFIT_STEPS, prune_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -88,8 +93,6 @@ def test_with_a_refit_the_partial_fold_gets_its_own_budget(tiny, tmp_path, monke
     """Pruning to 0.03 RMS leaves the renders further from the originals than F_a's fold tolerance (1/255). Without a
     refit the partial fold is measured from the originals, so nothing can fold; with one it is measured from the
     pruned model (the refit repairs both steps), so part of a strongly pose-dependent F_a folds."""
-    from framework.scene.compact import prune_checkpoint
-
     ckpt, cache = tiny
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     stored = torch.load(ckpt, map_location="cpu", weights_only=False)
@@ -106,3 +109,12 @@ def test_with_a_refit_the_partial_fold_gets_its_own_budget(tiny, tmp_path, monke
     refit = folds[2]
     assert not refit["folded"] and 0 < refit["folded_gaussians"] < refit["num_gaussians"]
     assert refit["render_rms"] <= refit["tolerance"]
+
+
+def test_the_command_lines_and_the_python_api_refit_as_long_by_default() -> None:
+    """`framework.prune`, `framework.export prune=true` and `prune_checkpoint(...)` are three doors to one compaction:
+    a default changed in one and not the others would make the same model compact differently by the door taken."""
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    for name in ("prune.yaml", "export.yaml"):
+        assert yaml.safe_load((conf / name).read_text())["refit_steps"] == DEFAULT_REFIT_STEPS, name
+    assert inspect.signature(prune_checkpoint).parameters["refit_steps"].default == DEFAULT_REFIT_STEPS

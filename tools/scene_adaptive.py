@@ -41,6 +41,7 @@ VARIANTS: dict[str, list[str]] = {"paper_full": [], "auto": ["+scene=auto"]}
 SMOKE = ["profile.max_steps=50", "profile.stage1_steps=20", "profile.densify_stop=40", "densifier.refine_start=10",
          "densifier.refine_every=10", "trainer.val_every=50", "callbacks.image_every=1000",
          "callbacks.checkpoint_every=1000", "eval.after_fit=false", "deformer.grid_resolution=32"]  # fmt: skip
+SMOKE_REFIT_STEPS = 20  # and a refit as short: the default 1500 steps would be most of the smoke run's time
 
 
 def train(run_dir: Path, overrides: list[str]) -> dict:
@@ -164,6 +165,8 @@ def main() -> None:
     args = ap.parse_args()
     prune_options = {k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps))
                      if v is not None}  # fmt: skip
+    if args.smoke:
+        prune_options.setdefault("refit_steps", SMOKE_REFIT_STEPS)
     extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
     results = {}
     for scene in args.scenes:

@@ -37,8 +37,11 @@ from framework.model.refit import refit_gaussians
 from framework.model.render_check import RenderCheck
 
 CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
-DEFAULT_REFIT_STEPS = 300
-"""Steps of the refit after pruning (`framework.model.refit`): 11-22 s on 2 CPU cores at the CPU profile's 128 px."""
+DEFAULT_REFIT_STEPS = 1500
+"""Steps of the refit after pruning (`framework.model.refit`): 90-115 s on 2 CPU cores at the CPU profile's 128 px.
+After the CPU profile's 4000 steps, 1500 steps against 300 gained 0.05-0.14 dB on three walking seeds (all three then
+within 0.3 dB of paper_full) and 0.05-0.10 dB on two glossy ones, and moved two near-static models by -0.04 to
++0.05 dB (docs/results/scene_adaptive.md, "The refit's default"). `conf/prune.yaml` and `conf/export.yaml` repeat it."""
 DEFAULT_PRUNE_TOLERANCE = 0.03
 """RMS colour (over the avatar's pixels of the checked training frames) that pruning may reach when the refit
 follows. On five 600-step studio models it left 29-49 % fewer Gaussians than 0.7/255 without a refit, at a PSNR
