@@ -139,3 +139,4 @@ def check_prune_config(cfg: DictConfig) -> None:
     for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames"),
                       ("rounds", "interleaved timing rounds")):  # fmt: skip
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")
+    _positive_int(cfg, "prune_rounds", "1: prune once, then refit; more: prune and refit again", 2)

@@ -42,7 +42,8 @@ def main() -> int:
                 check_prune_config(cfg)
                 report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,
                                           prune_tolerance=cfg.prune_tolerance,
-                                          refit_steps=int(cfg.refit_steps))  # fmt: skip
+                                          refit_steps=int(cfg.refit_steps),
+                                          prune_rounds=int(cfg.prune_rounds))  # fmt: skip
                 print(report.summary())
                 ckpt = report.out
             module = load_module(ckpt)

@@ -32,7 +32,7 @@ def prune_from_config(cfg: DictConfig):
         max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup), repeats=int(cfg.repeats),
         rounds=int(cfg.rounds), device=cfg.device, fold_tolerance=cfg.fold_tolerance,
         prune_tolerance=cfg.prune_tolerance,
-        refit_steps=int(cfg.refit_steps),
+        refit_steps=int(cfg.refit_steps), prune_rounds=int(cfg.prune_rounds),
     )  # fmt: skip
     print(report.summary())
     if cfg.json:

@@ -108,6 +108,7 @@ CASES = [
     Case("prune_refit_steps_negative", "prune", "`refit_steps=-1`", ["ckpt={ckpt}", "refit_steps=-1"]),
     Case("prune_tolerance_negative", "prune", "`prune_tolerance=-0.01`", ["ckpt={ckpt}", "prune_tolerance=-0.01"]),
     Case("prune_fold_tolerance_word", "prune", "`fold_tolerance=never`", ["ckpt={ckpt}", "fold_tolerance=never"]),
+    Case("prune_rounds_zero", "prune", "`prune_rounds=0`", ["ckpt={ckpt}", "prune_rounds=0"]),
 ]  # fmt: skip
 
 

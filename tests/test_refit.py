@@ -115,6 +115,8 @@ def test_the_command_lines_and_the_python_api_refit_as_long_by_default() -> None
     """`framework.prune`, `framework.export prune=true` and `prune_checkpoint(...)` are three doors to one compaction:
     a default changed in one and not the others would make the same model compact differently by the door taken."""
     conf = Path(__file__).resolve().parents[1] / "conf"
+    signature = inspect.signature(prune_checkpoint).parameters
     for name in ("prune.yaml", "export.yaml"):
-        assert yaml.safe_load((conf / name).read_text())["refit_steps"] == DEFAULT_REFIT_STEPS, name
-    assert inspect.signature(prune_checkpoint).parameters["refit_steps"].default == DEFAULT_REFIT_STEPS
+        stored = yaml.safe_load((conf / name).read_text())
+        assert stored["refit_steps"] == DEFAULT_REFIT_STEPS == signature["refit_steps"].default, name
+        assert stored["prune_rounds"] == signature["prune_rounds"].default == 1, name

@@ -14,6 +14,7 @@ import yaml
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
+from framework.errors import SplatrigError
 from framework.scene.auto import apply_choices, choose, override_keys
 from framework.scene.profile import SceneProfile
 
@@ -205,6 +206,28 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     assert a[key].shape == b[key].shape and not torch.equal(a[key], b[key])  # the same Gaussians, moved
     assert refit.skin_weights_stored is False and "avatar.gaussians.params.skin_weights" not in b
     assert "refit the remaining Gaussians for 20 steps" in refit.summary()
+
+
+def test_a_second_pruning_round_prunes_the_refitted_model_again(auto_run, tmp_path, monkeypatch):
+    """`prune_rounds=2`: the first round is the one-round compaction (deterministic), then the refitted model is
+    pruned again within the same tolerance of its own renders and refitted again. So it keeps at most the one-round
+    model's Gaussians, refits twice as long, and its counts add up to the Gaussians it ends with."""
+    from framework.scene.compact import prune_checkpoint
+
+    run, _ = auto_run
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
+    ckpt = run / "checkpoints" / "final.ckpt"
+    kw = dict(measure=False, device="cpu", refit_steps=10, prune_tolerance=0.05)
+    once = prune_checkpoint(ckpt, tmp_path / "once.ckpt", **kw)
+    twice = prune_checkpoint(ckpt, tmp_path / "twice.ckpt", prune_rounds=2, **kw)
+    assert once.refit["steps"] == 10 and twice.refit["steps"] == 20 and twice.refit["stopped"] is None
+    assert twice.after.num_gaussians < once.after.num_gaussians < once.before.num_gaussians
+    assert twice.before.num_gaussians - twice.removed_gaussians == twice.after.num_gaussians
+    assert twice.removed_within_tolerance > once.removed_within_tolerance
+    assert twice.skin_weights_stored is False  # the weights still follow the means through both refits
+    assert "in 2 rounds of pruning and refit" in twice.summary() and "rounds of" not in once.summary()
+    with pytest.raises(SplatrigError, match="prune_rounds=0"):
+        prune_checkpoint(ckpt, tmp_path / "none.ckpt", prune_rounds=0, **kw)
 
 
 def test_fold_tolerance_auto_keeps_the_corrector_whole_where_the_run_asked_for_it(tmp_path_factory, monkeypatch):

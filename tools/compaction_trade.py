@@ -45,7 +45,8 @@ DEFAULT_SETTINGS: dict[str, dict] = {
     "prune 0.045": {"prune_tolerance": 0.045},
     "prune 0.06": {"prune_tolerance": 0.06},
 }
-PRUNE_KEYS = ("fold_tolerance", "prune_tolerance", "refit_steps", "min_weight", "sh_tolerance", "max_frames")
+PRUNE_KEYS = ("fold_tolerance", "prune_tolerance", "refit_steps", "prune_rounds", "min_weight", "sh_tolerance",
+              "max_frames")  # fmt: skip
 
 
 @dataclass

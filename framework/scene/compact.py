@@ -33,7 +33,7 @@ from framework.model.pruning import (
     prune_within_tolerance,
     sh_band_rms,
 )
-from framework.model.refit import refit_gaussians
+from framework.model.refit import RefitResult, refit_gaussians
 from framework.model.render_check import RenderCheck
 
 CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
@@ -105,6 +105,7 @@ class PruneReport:
     skin_weights_stored: bool | None = True  # False: the body's field at the means, rebuilt on loading; None: no body
     refit: dict[str, Any] | None = None  # RefitResult as a dict when the Gaussians were refitted after pruning
     corrector_kept: str | None = None  # why F_a was kept whole without a fold being tried (`resolve_fold_tolerance`)
+    prune_rounds: int = 1  # pruning and refit rounds (`prune_checkpoint`'s prune_rounds)
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
@@ -132,8 +133,9 @@ class PruneReport:
                          f"RMS (over the avatar's pixels) from the original{before_refit}")  # fmt: skip
         if self.refit:
             r = self.refit
-            lines.append(f"[splatrig] refit the remaining Gaussians for {r['steps']} steps ({r['seconds']:.0f} s): "
-                         f"training loss {r['loss_first']:.5f} -> {r['loss_last']:.5f}"
+            rounds = f" in {self.prune_rounds} rounds of pruning and refit" if self.prune_rounds > 1 else ""
+            lines.append(f"[splatrig] refit the remaining Gaussians for {r['steps']} steps{rounds} "
+                         f"({r['seconds']:.0f} s): training loss {r['loss_first']:.5f} -> {r['loss_last']:.5f}"
                          + (f"; stopped: {r['stopped']}, parameters restored" if r["stopped"] else ""))  # fmt: skip
         lines.append(f"[splatrig] compact model: {self.out}")
         return "\n".join(lines)
@@ -354,7 +356,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
                      device: str | None = None, fold_tolerance: float | str | None = "auto",
                      prune_tolerance: float | str | None = "auto",
-                     refit_steps: int = DEFAULT_REFIT_STEPS, rounds: int = 5) -> PruneReport:  # fmt: skip
+                     refit_steps: int = DEFAULT_REFIT_STEPS, rounds: int = 5,
+                     prune_rounds: int = 1) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers; frame rates: both
     files timed interleaved, `rounds` rounds of `repeats` frames, `framework.evaluation.run_cost.interleaved_fps`).
@@ -369,7 +372,12 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     refit repairs both steps); then, with `refit_steps`, the remaining Gaussians refitted to the training images
     (`framework.model.refit`; blend weights that are the body's field at the means follow the means, as in training,
     and are baked again after).
+    With `prune_rounds` > 1 and a refit, pruning and the refit then repeat: each later round prunes within the same
+    tolerances of the refitted model's renders and refits `refit_steps` steps again, so the refits take
+    `prune_rounds * refit_steps` steps in all.
     None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
+    if prune_rounds < 1:
+        raise SplatrigError(f"prune_rounds={prune_rounds}: expected 1 or more (1: prune once, then refit).")
     prune_tolerance = resolve_prune_tolerance(prune_tolerance, refit_steps)
     ckpt_path = Path(ckpt_path)
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
@@ -395,12 +403,13 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
         fold = fold_module_corrector(module, dm, fold_tolerance, check=fold_check, partial=True)
     render_rms = check.rms(module.avatar)
     refit = None
-    if refit_steps > 0:
-        follow_means = rebuildable_skin_weights(module)
-        if follow_means:
-            del module.avatar.gaussians.params["skin_weights"]
-        refit = refit_gaussians(module, dm, refit_steps)
-        module.bake_weights()
+    for round_index in range(prune_rounds if refit_steps > 0 else 1):
+        if round_index:  # a later round: the refitted model is the new reference, pruned within the same tolerance
+            more, more_faint = prune_again(module, dm, min_weight, max_frames, prune_tolerance, check.batches,
+                                           check.sh_degree)  # fmt: skip
+            removed, faint = removed + more, faint + more_faint
+        if refit_steps > 0:
+            refit = merge_refits(refit, refit_module(module, dm, refit_steps))
     skin_weights = not rebuildable_skin_weights(module)
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     has_weights = "skin_weights" in module.avatar.gaussians.params  # a static scene's Gaussians have none
@@ -415,7 +424,38 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                        baked, str(device), None if fold is None else asdict(fold),
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
                        skin_weights if has_weights else None, None if refit is None else asdict(refit),
-                       corrector_kept if has_pose_corrector(compact.avatar) else None)  # fmt: skip
+                       corrector_kept if has_pose_corrector(compact.avatar) else None,
+                       prune_rounds if refit_steps > 0 else 1)  # fmt: skip
+
+
+def refit_module(module, dm, steps: int) -> RefitResult:
+    """Refit the Gaussians (`framework.model.refit`); blend weights that are the body's field at the means follow the
+    means during the refit, as in training, and are baked again after."""
+    if rebuildable_skin_weights(module):
+        del module.avatar.gaussians.params["skin_weights"]
+    result = refit_gaussians(module, dm, steps)
+    module.bake_weights()
+    return result
+
+
+def merge_refits(first: RefitResult | None, then: RefitResult) -> RefitResult:
+    """One report for refits run one after the other: steps and seconds add up, the losses span them all."""
+    if first is None:
+        return then
+    return RefitResult(first.steps + then.steps, first.seconds + then.seconds, first.loss_first, then.loss_last,
+                       first.stopped or then.stopped)  # fmt: skip
+
+
+@torch.no_grad()
+def prune_again(module, dm, min_weight: float, max_frames: int | None, tolerance: float | None, batches,
+                sh_degree: int) -> tuple[int, int]:  # fmt: skip
+    """Another pruning round after a refit (`prune_rounds`): the same thresholds, measured from the refitted model's
+    own renders, since the refit moved the Gaussians the last round's reference was drawn with. Returns (Gaussians
+    removed, of them within the tolerance)."""
+    check = RenderCheck.of(module.avatar, batches, sh_degree)
+    removed, faint, _ = prune_module(module, dm, min_weight, sh_tolerance=0.0, max_frames=max_frames, check=check,
+                                     tolerance=tolerance)  # SH bands were settled in the first round  # fmt: skip
+    return removed, faint
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
