@@ -22,6 +22,8 @@ THRESHOLDS = {
     "sh_view_dependence": [0.01, 0.02, 0.03],
     "corrector_pose_dependence": 0.008,
     "corrector_fold_pose_dependence": 0.015,
+    "corrector_narrow_pose_dependence": 0.03,
+    "corrector_narrow_hidden": 48,
     "weight_residual_skin_offset_px": 0.75,
     "gaussians_per_silhouette_px": 6.0,
     "min_gaussians": 1000,
@@ -51,6 +53,7 @@ def test_choices_follow_the_profile_numbers():
         "gaussians.sh_degree": 0,
         "corrector": "none",
         "scene.fold_corrector": True,  # weak pose dependence: compaction may fold F_a
+        "corrector.hidden": None,  # F_a is off: no width to choose
         "deformer": "lbs",
         "gaussians.num": 6000,  # 6 per silhouette pixel
         "densifier.max_gaussians": 12000,
@@ -59,6 +62,11 @@ def test_choices_follow_the_profile_numbers():
                                         silhouette_px=100.0), THRESHOLDS, "pelvis"))  # fmt: skip
     assert demanding["gaussians.sh_degree"] == 2 and demanding["corrector"] is None and demanding["deformer"] is None
     assert demanding["scene.fold_corrector"] is False  # 0.02 >= 0.015: F_a kept whole at compaction
+    assert demanding["corrector.hidden"] == 48  # 0.02 < 0.03: a narrower F_a
+    strong = _by_key(choose(_profile(pose_dependence=0.03), THRESHOLDS, "pelvis"))
+    assert strong["corrector"] is None and strong["corrector.hidden"] is None  # at the threshold: width as configured
+    older = {k: v for k, v in THRESHOLDS.items() if not k.startswith("corrector_narrow")}
+    assert _by_key(choose(_profile(pose_dependence=0.02), older, "pelvis"))["corrector.hidden"] is None
     assert demanding["gaussians.num"] == 1000  # the floor
     assert _by_key(choose(_profile(view_dependence=0.5), THRESHOLDS, "pelvis"))["gaussians.sh_degree"] == 3
 
@@ -76,7 +84,7 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     untouched = OmegaConf.to_container(cfg, resolve=False)
     # by hand: every key auto would set, in the forms people type them
     typed = ["scene.frozen_joints=[]", "gaussians.sh_degree=3", "corrector=latent", "scene.fold_corrector=false",
-             "deformer=lbs_residual",
+             "corrector.hidden=128", "deformer=lbs_residual",
              "profile.num_gaussians=8000", "densifier.max_gaussians=15000"]  # fmt: skip
     done = apply_choices(cfg, choices, override_keys(typed))
     assert all(c.overridden and not c.applied for c in done)
@@ -93,6 +101,15 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"),
                   override_keys(["deformer.grid_resolution=32"]))  # fmt: skip
     assert cfg.deformer.name == "lbs" and cfg.deformer.grid_resolution == 32
+    # F_a's width follows conf/scene/auto.yaml's threshold; an F_a set off by hand gets no width key
+    walking = _profile(pose_dependence=0.02)
+    cfg = _paper_full_auto()
+    apply_choices(cfg, choose(walking, dict(cfg.scene.thresholds), "pelvis"), set())
+    assert cfg.corrector.name == "latent" and cfg.corrector.hidden == cfg.scene.thresholds.corrector_narrow_hidden < 128
+    cfg = _paper_full_auto("corrector=none")
+    done = apply_choices(cfg, choose(walking, dict(cfg.scene.thresholds), "pelvis"), override_keys(["corrector=none"]))
+    assert cfg.corrector.name == "none" and "hidden" not in cfg.corrector
+    assert not next(c for c in done if c.key == "corrector.hidden").applied
 
 
 TINY_AUTO = [

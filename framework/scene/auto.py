@@ -13,6 +13,9 @@ Rules (thresholds in `conf/scene/auto.yaml`, under `scene.thresholds`):
   when the pose-dependent colour spread reaches `corrector_fold_pose_dependence`. Folding checks the training poses
   it averages over; where appearance follows the pose, novel poses need F_a's per-pose output (a partial fold cost
   about 0.1 dB on the studio's walking and glossy scenes and bought little frame rate).
+- F_a's width: `corrector_narrow_hidden` (`corrector.hidden`, the paper's 128 otherwise) when the pose-dependent
+  colour spread is below `corrector_narrow_pose_dependence`: a scene whose appearance changes little with the pose
+  needs a smaller function of it, and F_a runs on every Gaussian at every novel pose.
 - weight residual F_dw: switched off (`deformer=lbs`) when the body mesh's silhouette sits within
   `weight_residual_skin_offset_px` of the masks (the surface follows the body model's skinning).
 - Gaussian budget: `gaussians_per_silhouette_px` x the mean silhouette area in pixels at the training resolution (the
@@ -70,6 +73,15 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     degree = max(floor, sum(profile.view_dependence > x for x in sh_levels))
     corrector_need = profile.pose_dependence >= float(t["corrector_pose_dependence"])
     keep_corrector = profile.pose_dependence >= float(t["corrector_fold_pose_dependence"])
+    narrow_below = t.get("corrector_narrow_pose_dependence")  # absent (thresholds from before it): never narrowed
+    narrow = corrector_need and narrow_below is not None and profile.pose_dependence < float(narrow_below)
+    if not corrector_need:
+        width_rule = "F_a off"
+    elif narrow_below is None:
+        width_rule = "no narrowing threshold: width as configured"
+    else:
+        width_rule = (f"< {narrow_below}: width {t['corrector_narrow_hidden']}" if narrow
+                      else f">= {narrow_below}: width as configured")  # fmt: skip
     residual_need = profile.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
     num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
     cap = int(round(float(t["max_gaussians_factor"]) * num))
@@ -94,6 +106,12 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
             f"pose dependence {profile.pose_dependence:.4f}",
             f"{'>=' if keep_corrector else '<'} {t['corrector_fold_pose_dependence']}: "
             f"{'F_a kept whole at compaction' if keep_corrector else 'compaction may fold F_a'}",
+        ),  # fmt: skip
+        Choice(
+            "corrector.hidden",
+            int(t["corrector_narrow_hidden"]) if narrow else None,
+            f"pose dependence {profile.pose_dependence:.4f}",
+            width_rule,
         ),  # fmt: skip
         Choice(
             "deformer",
@@ -165,6 +183,8 @@ def apply_choices(cfg: DictConfig, choices: list[Choice], user_keys: set[str]) -
                 if choice.key == "deformer" and current.get("name") != "lbs_residual":
                     continue  # only the residual deformer has an F_dw to switch off
                 cfg[choice.key] = group_option(choice.key, str(choice.value), current)
+            elif choice.key.split(".")[0] in COMPONENT_KEYS and OmegaConf.select(cfg, choice.key) is None:
+                continue  # an option of a component the configuration does not have (F_a's width, F_a set off)
             else:
                 OmegaConf.update(cfg, choice.key, choice.value, merge=False, force_add=True)
         choice.applied = True
