@@ -9,6 +9,6 @@ import pytest
 from framework.testing.conformance import *  # noqa: F401,F403
 
 
-@pytest.fixture(params=["torch_ref", "jax", pytest.param("gsplat", marks=pytest.mark.gpu)])
+@pytest.fixture(params=["torch_ref", "jax", "numba", pytest.param("gsplat", marks=pytest.mark.gpu)])
 def backend_name(request: pytest.FixtureRequest) -> str:
     return request.param

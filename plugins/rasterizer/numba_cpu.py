@@ -1,0 +1,113 @@
+"""`numba`: `torch_ref`'s function on the CPU, with every render that needs no gradient run as compiled loops.
+
+Viewing, evaluation, frame-rate timing and the novel-view and novel-pose frames of a trained avatar render without
+gradients. At the sizes a CPU renders in real time, the eager rasterizer's time there is mostly per-operation
+overhead (`framework.splat.compiled_cpu` says why and how the loops avoid it). A render whose inputs require
+gradients (training) is handed to `torch_ref`, so the backward, densification's `means2d.grad` and the blending
+weights pruning reads have one implementation. Inputs on another device, or in half precision, are handed over too.
+
+The first render of a process compiles the loops, or loads them from numba's cache in `__pycache__`: a few seconds
+the first time on a machine, well under a second after that.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
+from framework.registry import register
+from framework.types import BlendWeights, Cameras, RenderOutput
+
+
+def _numba_unavailable() -> str | None:
+    import importlib.util
+
+    if importlib.util.find_spec("numba") is None:
+        return "numba: not installed (pip install numba)"
+    return None
+
+
+def _np64(t: Tensor) -> np.ndarray:
+    return t.detach().to(torch.float64).contiguous().numpy()
+
+
+@register("rasterizer", "numba", requires=_numba_unavailable)
+class NumbaRasterizer(Rasterizer):
+    """torch_ref's contract; forward-only renders as compiled loops, gradient renders by torch_ref."""
+
+    def __init__(self) -> None:
+        from plugins.rasterizer.torch_ref import TorchRefRasterizer
+
+        self._reference = TorchRefRasterizer()
+
+    @staticmethod
+    def compiled(tensors: tuple[Tensor, ...]) -> bool:
+        """Whether a render of these tensors runs the compiled loops: CPU, float32 or float64, no gradient asked."""
+        first = tensors[0]
+        if first.device.type != "cpu" or first.dtype not in (torch.float32, torch.float64):
+            return False
+        return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+    def render(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        sh: Tensor,
+        cameras: Cameras,
+        *,
+        sh_degree: int,
+        background: Tensor | None = None,
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> RenderOutput:
+        check_render_inputs(means, quats, scales, opacities, sh, sh_degree)
+        if not self.compiled((means, quats, scales, opacities, sh)) or cameras.device.type != "cpu":
+            return self._reference.render(means, quats, scales, opacities, sh, cameras, sh_degree=sh_degree,
+                                          background=background, near=near, far=far)  # fmt: skip
+        from framework.splat import compiled_cpu
+        from plugins.rasterizer.torch_ref import sh_colors
+
+        C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
+        dtype = means.dtype
+        means2d = np.empty((C, N, 2))
+        conics = np.empty((C, N, 3))
+        depths = np.empty((C, N))
+        half = np.empty((C, N, 2))
+        radii = np.empty((C, N), dtype=np.int32)
+        valid = np.empty((C, N), dtype=np.bool_)
+        opacity = _np64(opacities)
+        compiled_cpu.project(_np64(means), _np64(quats), _np64(scales), opacity, _np64(cameras.K),
+                             _np64(cameras.world_to_cam), W, H, float(near), float(far), EPS2D,
+                             means2d, conics, depths, half, radii, valid)  # fmt: skip
+        centers = cameras.centers().to(dtype)  # [C, 3]
+        colors = _np64(sh_colors(sh_degree, sh, means[None] - centers[:, None]))
+        bg = np.zeros(3) if background is None else _np64(background.reshape(3))
+        rgb = np.empty((C, H, W, 3))
+        alpha = np.empty((C, H, W))
+        depth = np.empty((C, H, W))
+        for c in range(C):
+            visible = np.flatnonzero(valid[c])
+            order = visible[np.argsort(depths[c, visible], kind="stable")]  # nearest first, ties in Gaussian order
+            compiled_cpu.composite(order, means2d[c], conics[c], opacity, colors[c], depths[c], half[c], W, H, bg,
+                                   rgb[c], alpha[c], depth[c])  # fmt: skip
+        out = (torch.from_numpy(a).to(dtype) for a in (rgb, alpha[..., None], depth[..., None], means2d))
+        rgb_t, alpha_t, depth_t, means2d_t = out
+        return RenderOutput(rgb=rgb_t, alpha=alpha_t, depth=depth_t, means2d=means2d_t, radii=torch.from_numpy(radii))
+
+    def blend_weights(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        cameras: Cameras,
+        *,
+        near: float = NEAR_PLANE,
+        far: float = FAR_PLANE,
+    ) -> BlendWeights:
+        """torch_ref's (pruning's pass over the training views; not a real-time path)."""
+        return self._reference.blend_weights(means, quats, scales, opacities, cameras, near=near, far=far)
