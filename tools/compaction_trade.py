@@ -133,7 +133,7 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
 
 
 def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], warmup: int, repeats: int,
-          rounds: int, device: str) -> list[TradeRow]:  # fmt: skip
+          rounds: int, device: str, rasterizer: str | None = None) -> list[TradeRow]:  # fmt: skip
     """Compact, measure PSNR, time interleaved; one row per setting (the model as trained included if asked)."""
     from framework.evaluation.run_cost import interleaved_fps
     from framework.lightning.trained_model import datamodule_for, load_module
@@ -152,7 +152,7 @@ def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], war
             module = load_module(path, map_location=device)
             measures[name] = asdict(measure_module(module, datamodule_for(module), repeats=0))
     print(f"[compaction_trade] timing {len(paths) + 1} models interleaved, {rounds} rounds", flush=True)
-    fps = interleaved_fps({"reference": reference, **paths}, warmup, repeats, rounds, device)
+    fps = interleaved_fps({"reference": reference, **paths}, warmup, repeats, rounds, device, rasterizer)
     rows = []
     for name, path in paths.items():
         m = measures[name]
@@ -241,6 +241,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
+    ap.add_argument(
+        "--rasterizer",
+        default=None,
+        help="time every model's frames with this backend (e.g. numba); default: the one it trained with",
+    )
     ap.add_argument("--target-fps", type=float, default=1.5)
     ap.add_argument("--budget-db", type=float, default=0.3)
     args = ap.parse_args(argv)
@@ -250,10 +255,13 @@ def main(argv: list[str] | None = None) -> None:
     settings = dict([parse_setting(s) for s in args.setting]) if args.setting else dict(DEFAULT_SETTINGS)
     settings = {AS_TRAINED: {}, **settings}
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    rows = trade(args.reference, args.ckpt, args.out, settings, args.warmup, args.repeats, args.rounds, device)
+    rows = trade(
+        args.reference, args.ckpt, args.out, settings, args.warmup, args.repeats, args.rounds, device, args.rasterizer
+    )
     table = markdown(rows, args.target_fps, args.budget_db)
-    header = (f"# compaction trade of `{args.ckpt}` against `{args.reference}`\n\ndevice {device}; frame rates "
-              f"interleaved over {args.rounds} rounds (medians)\n\n")  # fmt: skip
+    backend = f"rasterizer {args.rasterizer}" if args.rasterizer else "each model's own rasterizer"
+    header = (f"# compaction trade of `{args.ckpt}` against `{args.reference}`\n\ndevice {device}; {backend}; frame "
+              f"rates interleaved over {args.rounds} rounds (medians)\n\n")  # fmt: skip
     (args.out / "compaction_trade.md").write_text(header + table + "\n")
     write_csv(rows, args.out / "compaction_trade.csv")
     title = "/".join(args.ckpt.resolve().parts[-4:-2]) + " against " + "/".join(args.reference.resolve().parts[-4:-2])

@@ -62,10 +62,11 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
     return json.loads(stats.read_text())
 
 
-def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune_options: dict | None = None) -> dict:
+def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune_options: dict | None = None,
+                  rasterizer: str | None = None) -> dict:  # fmt: skip
     """paper_full measured and auto pruned (sizes and PSNR before and after; `prune_options` go to
     `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
-    interleaved over `rounds` rounds (medians)."""
+    interleaved over `rounds` rounds (medians), rendered with `rasterizer` (default: the one they trained with)."""
     from framework.evaluation.run_cost import interleaved_fps
     from framework.lightning.trained_model import datamodule_for, load_module
     from framework.scene.compact import measure_module, prune_checkpoint
@@ -79,7 +80,7 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device(), **(prune_options or {}))
     measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
     fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
-                          rounds, _device())  # fmt: skip
+                          rounds, _device(), rasterizer)  # fmt: skip
     for name, (pose_fps, view_fps) in fps.items():
         measures[name].update(novel_pose_fps=pose_fps, novel_view_fps=view_fps)
     return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
@@ -162,6 +163,11 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
     ap.add_argument("--prune-tolerance", type=float, default=None, help="default: framework.prune's (auto)")
     ap.add_argument("--refit-steps", type=int, default=None, help="default: framework.prune's")
+    ap.add_argument(
+        "--rasterizer",
+        default=None,
+        help="time the frames with this backend (e.g. numba); default: the one the models trained with",
+    )
     args = ap.parse_args()
     prune_options = {k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps))
                      if v is not None}  # fmt: skip
@@ -173,7 +179,7 @@ def main() -> None:
         scene_dir = args.out / scene
         train_stats = {v: train(scene_dir / v, [*SCENES[scene], *o, *extra]) for v, o in VARIANTS.items()}
         summary = yaml.safe_load((scene_dir / "auto" / "scene.yaml").read_text())
-        measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds, prune_options)
+        measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds, prune_options, args.rasterizer)
         results[scene] = {"train": train_stats, "measures": measures, "choices": summary["choices"],
                           "profile": summary["profile"]}  # fmt: skip
         results[scene]["removed_gaussians"] = results[scene]["measures"].pop("removed_gaussians")

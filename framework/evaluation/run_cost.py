@@ -82,19 +82,23 @@ def render_fps(module, dm, split: str, warmup: int = 3, repeats: int = 10) -> tu
     return pose_fps, view_fps
 
 
-def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int,
-                    device: str = "cpu") -> dict[str, tuple[float, float]]:  # fmt: skip
+def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
+                    rasterizer: str | None = None) -> dict[str, tuple[float, float]]:  # fmt: skip
     """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
     (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared 2-core
     VM's speed drifts by 20-50 % over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour
     later, at 52-67 ms), and timing the models one after the other would turn that drift into a difference between
-    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x)."""
+    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x).
+
+    `rasterizer`: render every model with this backend instead of the one it was trained with (`use_rasterizer`)."""
     import statistics
 
     loaded = {}
     for name, path in ckpts.items():
         module = load_module(path, map_location=device)
         module.bake_weights()
+        if rasterizer is not None:
+            use_rasterizer(module, rasterizer)
         dm = datamodule_for(module)
         split = timing_split(dm)
         if split is None:
@@ -108,6 +112,16 @@ def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: i
             times[name].append(render_fps(module, dm, split, warmup=warmup, repeats=repeats))
     return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
             for name, ts in times.items()}  # fmt: skip
+
+
+def use_rasterizer(module, name: str) -> None:
+    """Render `module`'s avatar with the registered backend `name` from now on (every backend renders the same
+    function, so a model trained with one renders with any; `numba` is the fast one for CPU frames)."""
+    from framework.plugins import load_plugins
+    from framework.registry import RASTERIZERS
+
+    load_plugins()
+    module.avatar.rasterizer = RASTERIZERS.build(name)
 
 
 def run_cost(module, dm, checkpoint: Path | None, train_seconds: float, steps: int, fps_frames: int,
