@@ -260,3 +260,26 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     # the final model also holds the baked weights [N, 17] (float32) that last.ckpt, saved before baking, lacks
     assert record["model_bytes"] == learned + module.avatar.gaussians.num * 17 * 4
     assert record["num_gaussians"] == module.avatar.gaussians.num
+    # the same avatar's novel-pose frames with the compiled CPU rasterizer: torch_ref's images to float32 rounding
+    # (a pixel may move by one pair's weight at the 1/255 cut, tests/test_numba_rasterizer.py), timed through the
+    # same interleaved path the compaction tools use
+    from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, use_rasterizer
+    from framework.lightning.trained_model import datamodule_for
+
+    pytest.importorskip("numba")
+    dm = datamodule_for(module)
+    poses = dm.split("novel_pose")
+    module.eval()
+    sh_degree = module.sh_degree(module.trained_steps())
+    with torch.no_grad():
+        batches = [poses[i] for i in distinct_frame_items(poses, 2)]
+        ref = [module.avatar(b, sh_degree=sh_degree).render.rgb for b in batches]
+        use_rasterizer(module, "numba")
+        module.avatar.train(False)  # drops the posed cache, so the frames pose again
+        got = [module.avatar(b, sh_degree=sh_degree).render.rgb for b in batches]
+    assert type(module.avatar.rasterizer).registry_name == "numba"
+    for a, b in zip(got, ref, strict=True):
+        err = (a - b).abs()
+        assert float(err.max()) <= 1.0 / 255.0 and float((err > 2e-5).float().mean()) <= 1e-3
+    fps = interleaved_fps({"final": ckpts / "final.ckpt"}, warmup=1, repeats=2, rounds=1, rasterizer="numba")
+    assert fps["final"][0] > 0 and fps["final"][1] > 0
