@@ -114,17 +114,32 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
 
 
 @njit(cache=True, nogil=True)
+def _next_open(skip, i: int) -> int:
+    """The first pixel at or after slot `i` of its row that is not finished (path halving keeps the chains short)."""
+    while skip[i] != i:
+        skip[i] = skip[skip[i]]
+        i = skip[i]
+    return i
+
+
+@njit(cache=True, nogil=True)
 def composite(order, means2d, conics, opacities, colors, depths, half, width, height, background,
-              rgb, alpha, depth):  # fmt: skip
-    """Front-to-back compositing of one camera's entries `order` (indices, nearest first) into its image.
+              rgb, alpha, depth, first_row=0, row_step=1):  # fmt: skip
+    """Front-to-back compositing of one camera's entries `order` (indices, nearest first) into the rows
+    first_row, first_row + row_step, ... of its image (threads given different first rows share the image).
 
     In: means2d [N, 2], conics [N, 3], opacities [N], colors [N, 3], depths [N], half [N, 2], background [3].
     Out (written): rgb [H, W, 3], alpha [H, W], depth [H, W]. A pixel is finished when the transmittance after a pair
-    would fall to 1e-4; that pair is not added (the contract's early termination)."""
-    npix = width * height
-    T = np.ones(npix)
-    acc = np.zeros((npix, 4))  # r, g, b, z sums of T * alpha * value
-    done = np.zeros(npix, dtype=np.bool_)
+    would fall to 1e-4; that pair is not added (the contract's early termination).
+
+    Finished pixels are skipped without being visited: each row keeps, per slot, a link towards the next pixel that
+    is still open (a slot W past the row's end is never finished), so a span costs its open pixels, not its width.
+    Where the footprints pile up (opaque surfaces, large Gaussians) most pairs fall on finished pixels: 30k random
+    Gaussians of about 20 px radius at 256² measured 119 ms when every pair was visited."""
+    stride = width + 1
+    T = np.ones(height * stride)
+    acc = np.zeros((height * stride, 4))  # r, g, b, z sums of T * alpha * value
+    skip = np.arange(height * stride)  # skip[i] == i: open (or the row's end slot); else a link further right
     for e in order:
         mx, my = means2d[e, 0], means2d[e, 1]
         a, b, c = conics[e, 0], conics[e, 1], conics[e, 2]
@@ -133,7 +148,7 @@ def composite(order, means2d, conics, opacities, colors, depths, half, width, he
         a_safe = max(a, _TINY)
         y0 = _clamp_index(math.ceil(my - half[e, 1] - BOX_MARGIN - 0.5), 0, height)
         y1 = _clamp_index(math.floor(my + half[e, 1] + BOX_MARGIN - 0.5), -1, height - 1)
-        for y in range(y0, y1 + 1):
+        for y in range(y0 + (first_row - y0) % row_step, y1 + 1, row_step):
             dy = my - (y + 0.5)
             disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * big_l)  # sigma(dx) <= L is a quadratic in dx
             if not disc >= 0:
@@ -141,32 +156,29 @@ def composite(order, means2d, conics, opacities, colors, depths, half, width, he
             sq = math.sqrt(disc)
             x0 = _clamp_index(math.ceil(mx - (-b * dy + sq) / a_safe - BOX_MARGIN - 0.5), 0, width)
             x1 = _clamp_index(math.floor(mx - (-b * dy - sq) / a_safe + BOX_MARGIN - 0.5), -1, width - 1)
-            row = y * width
-            for x in range(x0, x1 + 1):
-                p = row + x
-                if done[p]:
-                    continue
-                dx = mx - (x + 0.5)
+            row = y * stride
+            p = _next_open(skip, row + x0)
+            while p <= row + x1:
+                dx = mx - (p - row + 0.5)
                 neg_sigma = (-0.5 * a * dx - b * dy) * dx - 0.5 * c * dy * dy
-                if neg_sigma > 0:
-                    continue
                 raw = op * math.exp(neg_sigma)
-                if raw < ALPHA_MIN:
-                    continue
-                al = min(raw, ALPHA_MAX)
-                next_t = T[p] * (1.0 - al)
-                if next_t <= TRANSMITTANCE_MIN:
-                    done[p] = True
-                    continue
-                wgt = T[p] * al
-                acc[p, 0] += wgt * colors[e, 0]
-                acc[p, 1] += wgt * colors[e, 1]
-                acc[p, 2] += wgt * colors[e, 2]
-                acc[p, 3] += wgt * depths[e]
-                T[p] = next_t
-    for p in range(npix):
-        i, j = p // width, p % width
-        for k in range(3):
-            rgb[i, j, k] = acc[p, k] + T[p] * background[k]
-        alpha[i, j] = 1.0 - T[p]
-        depth[i, j] = acc[p, 3]
+                if neg_sigma <= 0 and raw >= ALPHA_MIN:
+                    al = min(raw, ALPHA_MAX)
+                    next_t = T[p] * (1.0 - al)
+                    if next_t <= TRANSMITTANCE_MIN:
+                        skip[p] = p + 1  # finished: later spans step over it
+                    else:
+                        wgt = T[p] * al
+                        acc[p, 0] += wgt * colors[e, 0]
+                        acc[p, 1] += wgt * colors[e, 1]
+                        acc[p, 2] += wgt * colors[e, 2]
+                        acc[p, 3] += wgt * depths[e]
+                        T[p] = next_t
+                p = _next_open(skip, p + 1)
+    for i in range(first_row, height, row_step):
+        for j in range(width):
+            p = i * stride + j
+            for k in range(3):
+                rgb[i, j, k] = acc[p, k] + T[p] * background[k]
+            alpha[i, j] = 1.0 - T[p]
+            depth[i, j] = acc[p, 3]
