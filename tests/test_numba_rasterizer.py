@@ -114,20 +114,3 @@ def test_gradient_renders_are_torch_refs(backends) -> None:
     assert torch.equal(outs[0].rgb, outs[1].rgb)
     for a, b in zip(*grads, strict=True):
         assert torch.equal(a, b)
-
-
-def test_threaded_rows_equal_one_thread(backends, monkeypatch) -> None:
-    """Rows shared out to threads give the one-thread image bit for bit: each pixel still sees its pairs in order."""
-    import plugins.rasterizer.numba_cpu as numba_cpu
-
-    numba_backend, _ = backends
-    scene = make_random_scene(5, 2000, 70, 50, num_cameras=2, sh_degree=2)
-    with torch.no_grad():
-        monkeypatch.setattr(numba_cpu, "_threads", lambda num_pixels: 1)
-        one = render_scene(numba_backend, scene)
-        for threads in (2, 3):
-            monkeypatch.setattr(numba_cpu, "_threads", lambda num_pixels, k=threads: k)
-            many = render_scene(numba_backend, scene)
-            for key in ("rgb", "alpha", "depth"):
-                assert torch.equal(getattr(many, key), getattr(one, key)), (threads, key)
-    assert float(one.alpha.max()) > 0.5

@@ -33,26 +33,6 @@ def _np64(t: Tensor) -> np.ndarray:
     return t.detach().to(torch.float64).contiguous().numpy()
 
 
-PARALLEL_MIN_PIXELS = 96 * 96  # below this a second thread's hand-off costs more than it saves (measured at 128²)
-_executor = None
-
-
-def _pool():
-    """One process-wide pool for the compositing threads, made on first use."""
-    global _executor
-    if _executor is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _executor = ThreadPoolExecutor(max_workers=8, thread_name_prefix="numba-composite")
-    return _executor
-
-
-def _threads(num_pixels: int) -> int:
-    """Compositing threads for an image: torch's intra-op thread count (the cores a render may use), one for small
-    images."""
-    return 1 if num_pixels < PARALLEL_MIN_PIXELS else max(1, min(torch.get_num_threads(), 8))
-
-
 @register("rasterizer", "numba", requires=_numba_unavailable)
 class NumbaRasterizer(Rasterizer):
     """torch_ref's contract; forward-only renders as compiled loops, gradient renders by torch_ref."""
@@ -109,19 +89,11 @@ class NumbaRasterizer(Rasterizer):
         rgb = np.empty((C, H, W, 3))
         alpha = np.empty((C, H, W))
         depth = np.empty((C, H, W))
-        threads = _threads(H * W)
         for c in range(C):
             visible = np.flatnonzero(valid[c])
             order = visible[np.argsort(depths[c, visible], kind="stable")]  # nearest first, ties in Gaussian order
-            args = (order, means2d[c], conics[c], opacity, colors[c], depths[c], half[c], W, H, bg, rgb[c], alpha[c],
-                    depth[c])  # fmt: skip
-            if threads == 1:
-                compiled_cpu.composite(*args)
-                continue
-            # interleaved rows: every thread sees a like share of the body (the loops release the GIL)
-            done = [_pool().submit(compiled_cpu.composite, *args, k, threads) for k in range(threads)]
-            for d in done:
-                d.result()
+            compiled_cpu.composite(order, means2d[c], conics[c], opacity, colors[c], depths[c], half[c], W, H, bg,
+                                   rgb[c], alpha[c], depth[c])  # fmt: skip
         out = (torch.from_numpy(a).to(dtype) for a in (rgb, alpha[..., None], depth[..., None], means2d))
         rgb_t, alpha_t, depth_t, means2d_t = out
         return RenderOutput(rgb=rgb_t, alpha=alpha_t, depth=depth_t, means2d=means2d_t, radii=torch.from_numpy(radii))
