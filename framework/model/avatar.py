@@ -128,14 +128,29 @@ class Avatar(nn.Module):
     ) -> None:
         super().__init__()
         self.gaussians = gaussians
-        self.rasterizer = rasterizer
         self.corrector = corrector
         self.deformer = deformer
+        self.rasterizer = rasterizer  # after the deformer: the setter tells it whether to skin compiled
         self.body = body
         self.pose_refiner = pose_refiner
         self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
         # Real-time path: novel views of one pose reuse the corrected, posed Gaussians (inference only).
         self._posed_cache: tuple[bytes, Gaussians, dict[str, Tensor], Tensor | None] | None = None
+
+    @property
+    def rasterizer(self) -> Rasterizer:
+        return self._rasterizer
+
+    @rasterizer.setter
+    def rasterizer(self, backend: Rasterizer) -> None:
+        """Swap the backend (viewer, benchmarks, `framework.evaluation.run_cost.use_rasterizer`). A backend with
+        `compiled_inference` (numba) also switches an LBS deformer to its compiled skinning for renders without
+        gradients, so the whole CPU frame runs compiled; any other backend switches it back."""
+        self._rasterizer = backend
+        self._posed_cache = None  # posed by the other skinning path (the same values, to rounding)
+        deformer = self._modules.get("deformer")
+        if deformer is not None and hasattr(deformer, "compiled_inference"):
+            deformer.compiled_inference = bool(getattr(backend, "compiled_inference", False))
 
     def _pose_key(self, batch: FrameBatch) -> bytes:
         parts = [batch.frame[:1]]

@@ -50,6 +50,9 @@ class LBSDeformerBase(Deformer):
         self.report_weight_std = weight_std
         self.field: WeightField | None = None
         self.unfolded: WeightField | None = None  # frozen joints: the field over the full skeleton, for L_w only
+        # Set by the avatar when its rasterizer runs compiled (numba): baked weights without gradients on the CPU are
+        # then skinned by `framework.rig.compiled_skinning` (the same values in float64, cast back).
+        self.compiled_inference = False
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
         if body is None or bounds is None:
@@ -109,6 +112,13 @@ class LBSDeformerBase(Deformer):
         folded_groups = weight_std(full7[:, 1:, self.fold_members]) - weight_std(grid7[:, 1:, self.fold_groups])
         return w7[:, 0], weight_std(w7[:, 1:]) + folded_groups
 
+    def _skins_compiled(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
+        """Whether this call takes the compiled skinning: switched on, baked weights, CPU, no gradient asked."""
+        if not self.compiled_inference or gaussians.skin_weights is None or w.device.type != "cpu":
+            return False
+        tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
+        return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
     @torch.no_grad()
     def bake(self, gaussians: Gaussians) -> Tensor:
         """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference."""
@@ -127,7 +137,12 @@ class LBSDeformerBase(Deformer):
             w, aux["weight_std"] = self.smooth_weights(points)  # [N, J], [N]
         else:
             w = self.weights(gaussians.means)  # [N, J]
-        posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
+        if self._skins_compiled(gaussians, w, bone_transforms):
+            from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled
+
+            posed, R = lbs_with_sh_frames_compiled(gaussians, w, bone_transforms, self.stretch, self.centres)
+        else:
+            posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
         if posed.sh.shape[1] == 1:  # degree 0 does not turn
             return DeformOutput(posed=posed, weights=w, aux=aux)
         if defer_sh:

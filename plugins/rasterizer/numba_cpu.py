@@ -6,6 +6,10 @@ overhead (`framework.splat.compiled_cpu` says why and how the loops avoid it). A
 gradients (training) is handed to `torch_ref`, so the backward, densification's `means2d.grad` and the blending
 weights pruning reads have one implementation. Inputs on another device, or in half precision, are handed over too.
 
+An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
+(`framework.rig.compiled_skinning`, for LBS deformers with baked weights), so the whole CPU frame but F_a and the
+bone transforms runs compiled.
+
 The first render of a process compiles the loops, or loads them from numba's cache in `__pycache__`: a few seconds
 the first time on a machine, well under a second after that.
 """
@@ -36,6 +40,9 @@ def _np64(t: Tensor) -> np.ndarray:
 @register("rasterizer", "numba", requires=_numba_unavailable)
 class NumbaRasterizer(Rasterizer):
     """torch_ref's contract; forward-only renders as compiled loops, gradient renders by torch_ref."""
+
+    #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`)
+    compiled_inference = True
 
     def __init__(self) -> None:
         from plugins.rasterizer.torch_ref import TorchRefRasterizer
