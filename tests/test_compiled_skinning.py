@@ -94,4 +94,3 @@ def test_singular_and_non_finite_blends_stay_finite_rotations() -> None:
     torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=1e-12, rtol=0)
     torch.testing.assert_close(torch.linalg.det(R), torch.ones(3, dtype=F64), atol=1e-12, rtol=0)
     torch.testing.assert_close(R[2], torch.eye(3, dtype=F64))  # a non-finite blend -> the identity
-
