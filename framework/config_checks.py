@@ -140,3 +140,19 @@ def check_prune_config(cfg: DictConfig) -> None:
                       ("rounds", "interleaved timing rounds")):  # fmt: skip
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")
     _positive_int(cfg, "prune_rounds", "1: prune once, then refit; more: prune and refit again", 2)
+    _known_rasterizer(cfg, "timing_rasterizer")
+
+
+def _known_rasterizer(cfg: DictConfig, key: str) -> None:
+    """`key` names a rasterizer that runs here, or is null; checked before the compaction's minutes of work."""
+    name = cfg.get(key)
+    if name is None:
+        return
+    from framework.plugins import load_plugins
+    from framework.registry import RASTERIZERS, RegistryError
+
+    load_plugins()
+    try:
+        RASTERIZERS.get(str(name))
+    except RegistryError as exc:
+        raise ConfigError(f"config key {key}: {exc} Or {key}=null: the rasterizer the model trained with.") from None

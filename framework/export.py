@@ -43,7 +43,8 @@ def main() -> int:
                 report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,
                                           prune_tolerance=cfg.prune_tolerance,
                                           refit_steps=int(cfg.refit_steps),
-                                          prune_rounds=int(cfg.prune_rounds))  # fmt: skip
+                                          prune_rounds=int(cfg.prune_rounds),
+                                          timing_rasterizer=cfg.timing_rasterizer)  # fmt: skip
                 print(report.summary())
                 ckpt = report.out
             module = load_module(ckpt)

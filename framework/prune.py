@@ -33,6 +33,7 @@ def prune_from_config(cfg: DictConfig):
         rounds=int(cfg.rounds), device=cfg.device, fold_tolerance=cfg.fold_tolerance,
         prune_tolerance=cfg.prune_tolerance,
         refit_steps=int(cfg.refit_steps), prune_rounds=int(cfg.prune_rounds),
+        timing_rasterizer=cfg.timing_rasterizer,
     )  # fmt: skip
     print(report.summary())
     if cfg.json:

@@ -109,6 +109,8 @@ CASES = [
     Case("prune_tolerance_negative", "prune", "`prune_tolerance=-0.01`", ["ckpt={ckpt}", "prune_tolerance=-0.01"]),
     Case("prune_fold_tolerance_word", "prune", "`fold_tolerance=never`", ["ckpt={ckpt}", "fold_tolerance=never"]),
     Case("prune_rounds_zero", "prune", "`prune_rounds=0`", ["ckpt={ckpt}", "prune_rounds=0"]),
+    Case("prune_timing_rasterizer_unknown", "prune", "`timing_rasterizer=numbaa`",
+         ["ckpt={ckpt}", "timing_rasterizer=numbaa"]),
 ]  # fmt: skip
 
 

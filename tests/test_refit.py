@@ -120,3 +120,4 @@ def test_the_command_lines_and_the_python_api_refit_as_long_by_default() -> None
         stored = yaml.safe_load((conf / name).read_text())
         assert stored["refit_steps"] == DEFAULT_REFIT_STEPS == signature["refit_steps"].default, name
         assert stored["prune_rounds"] == signature["prune_rounds"].default == 1, name
+        assert stored["timing_rasterizer"] is None and signature["timing_rasterizer"].default is None, name

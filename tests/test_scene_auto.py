@@ -166,12 +166,13 @@ def test_prune_entry_point_writes_a_compact_model_that_loads(auto_run, tmp_path)
     out = tmp_path / "compact.ckpt"
     cmd = [sys.executable, "-m", "framework.prune", f"ckpt={run / 'checkpoints' / 'final.ckpt'}", f"out={out}",
            "warmup=1", "repeats=2", f"json={tmp_path / 'report.json'}", "prune_tolerance=null",
-           "refit_steps=0"]  # fmt: skip
+           "refit_steps=0", "timing_rasterizer=numba"]  # fmt: skip
     # the min_weight threshold alone (no faint-Gaussian pruning, no refit: the refit has its own test below)
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "novel-pose fps" in proc.stdout and "novel_pose PSNR dB" in proc.stdout and out.is_file()
+    assert "novel-pose fps (numba)" in proc.stdout and "novel_pose PSNR dB" in proc.stdout and out.is_file()
     report = yaml.safe_load((tmp_path / "report.json").read_text())
+    assert report["timing_rasterizer"] == "numba" and report["after"]["novel_pose_fps"] > 0
     before, after = report["before"], report["after"]
     assert after["num_gaussians"] == before["num_gaussians"] - report["removed_gaussians"]
     assert after["model_bytes"] <= before["model_bytes"] and after["sh_degree"] == 0  # one step: SH never switched on

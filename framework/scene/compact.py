@@ -106,6 +106,7 @@ class PruneReport:
     refit: dict[str, Any] | None = None  # RefitResult as a dict when the Gaussians were refitted after pruning
     corrector_kept: str | None = None  # why F_a was kept whole without a fold being tried (`resolve_fold_tolerance`)
     prune_rounds: int = 1  # pruning and refit rounds (`prune_checkpoint`'s prune_rounds)
+    timing_rasterizer: str | None = None  # the backend the frame rates were timed with; None: the model's own
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
@@ -155,15 +156,18 @@ class PruneReport:
             ("model (learned) MiB", f"{b.model_bytes / 2**20:.2f}", f"{a.model_bytes / 2**20:.2f}",
              ratio(b.model_bytes, a.model_bytes, True)),  # fmt: skip
             ("checkpoint file MiB", _mib(b.file_bytes), _mib(a.file_bytes), ratio(b.file_bytes, a.file_bytes, True)),
-            ("novel-pose fps", _num(b.novel_pose_fps), _num(a.novel_pose_fps),
+            (f"novel-pose fps{self._timed_with()}", _num(b.novel_pose_fps), _num(a.novel_pose_fps),
              ratio(b.novel_pose_fps, a.novel_pose_fps)),
-            ("novel-view fps", _num(b.novel_view_fps), _num(a.novel_view_fps),
+            (f"novel-view fps{self._timed_with()}", _num(b.novel_view_fps), _num(a.novel_view_fps),
              ratio(b.novel_view_fps, a.novel_view_fps)),
         ]  # fmt: skip
         for split in b.psnr:
             pb, pa = b.psnr[split], a.psnr.get(split)
             rows.append((f"{split} PSNR dB", f"{pb:.3f}", _num(pa, 3), "-" if pa is None else f"{pa - pb:+.3f}"))
         return format_table(rows, ("", "before", "after", "change"))
+
+    def _timed_with(self) -> str:
+        return f" ({self.timing_rasterizer})" if self.timing_rasterizer else ""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -357,7 +361,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      device: str | None = None, fold_tolerance: float | str | None = "auto",
                      prune_tolerance: float | str | None = "auto",
                      refit_steps: int = DEFAULT_REFIT_STEPS, rounds: int = 5,
-                     prune_rounds: int = 1) -> PruneReport:  # fmt: skip
+                     prune_rounds: int = 1, timing_rasterizer: str | None = None) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers; frame rates: both
     files timed interleaved, `rounds` rounds of `repeats` frames, `framework.evaluation.run_cost.interleaved_fps`).
@@ -375,7 +379,9 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     With `prune_rounds` > 1 and a refit, pruning and the refit then repeat: each later round prunes within the same
     tolerances of the refitted model's renders and refits `refit_steps` steps again, so the refits take
     `prune_rounds * refit_steps` steps in all.
-    None for a tolerance skips its step. Blend weights the body's field reproduces are not stored."""
+    None for a tolerance skips its step. Blend weights the body's field reproduces are not stored.
+    `timing_rasterizer` renders the timed frames of both models with that backend (e.g. `numba`, the compiled CPU
+    frame); None: the one the model trained with. PSNR and the compaction's own checks always use the model's."""
     if prune_rounds < 1:
         raise SplatrigError(f"prune_rounds={prune_rounds}: expected 1 or more (1: prune once, then refit).")
     prune_tolerance = resolve_prune_tolerance(prune_tolerance, refit_steps)
@@ -417,7 +423,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     after = measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size) \
         if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
     if measure and repeats > 0 and rounds > 0 and timing_split(dm) is not None:  # no held-out split: no frame rates
-        fps = interleaved_fps({"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device))
+        fps = interleaved_fps({"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device),
+                              timing_rasterizer)  # fmt: skip
         before.novel_pose_fps, before.novel_view_fps = fps["before"]
         after.novel_pose_fps, after.novel_view_fps = fps["after"]
     return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
@@ -425,7 +432,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                        None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
                        skin_weights if has_weights else None, None if refit is None else asdict(refit),
                        corrector_kept if has_pose_corrector(compact.avatar) else None,
-                       prune_rounds if refit_steps > 0 else 1)  # fmt: skip
+                       prune_rounds if refit_steps > 0 else 1, timing_rasterizer)  # fmt: skip
 
 
 def refit_module(module, dm, steps: int) -> RefitResult:
