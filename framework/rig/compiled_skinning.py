@@ -33,13 +33,19 @@ _NEWTON_TOL = 1e-13  # float64, as framework.rig.polar
 
 
 @njit(cache=True, nogil=True)
-def _cofactors(X, C) -> None:
-    """C = cofactor matrix of the 3x3 X (row i is the cross product of rows i + 1 and i + 2)."""
+def _cofactors_det_norm(X, C) -> tuple[float, float]:
+    """C = cofactor matrix of the 3x3 X (row i is the cross product of rows i + 1 and i + 2); returns (det X,
+    |X|_F^2), which every step of the iteration needs with it."""
     for i in range(3):
         i1, i2 = (i + 1) % 3, (i + 2) % 3
         for k in range(3):
             k1, k2 = (k + 1) % 3, (k + 2) % 3
             C[i, k] = X[i1, k1] * X[i2, k2] - X[i1, k2] * X[i2, k1]
+    norm_sq = 0.0
+    for i in range(3):
+        for j in range(3):
+            norm_sq += X[i, j] * X[i, j]
+    return X[0, 0] * C[0, 0] + X[0, 1] * C[0, 1] + X[0, 2] * C[0, 2], norm_sq
 
 
 @njit(cache=True, nogil=True)
@@ -52,18 +58,11 @@ def _polar_rotation(A, R, X, C) -> None:
     for i in range(3):
         for j in range(3):
             X[i, j] = A[i, j] if finite else (1.0 if i == j else 0.0)
-    _cofactors(X, C)
-    det = X[0, 0] * C[0, 0] + X[0, 1] * C[0, 1] + X[0, 2] * C[0, 2]
-    norm_sq = 0.0
-    for i in range(3):
-        for j in range(3):
-            norm_sq += X[i, j] * X[i, j]
+    det, norm_sq = _cofactors_det_norm(X, C)
     mean_sq = norm_sq / 3.0
     if not det > POLAR_SINGULAR_TOL * mean_sq * math.sqrt(mean_sq):
-        U, _, Vh = np.linalg.svd(X)
-        M = U @ Vh
-        d = np.linalg.det(M)
-        if d < 0:
+        U, _, Vh = np.linalg.svd(X)  # the closest proper rotation: U diag(1, 1, det(U V^T)) V^T
+        if np.linalg.det(U @ Vh) < 0:
             U[:, 2] = -U[:, 2]
         M = U @ Vh
         for i in range(3):
@@ -72,12 +71,7 @@ def _polar_rotation(A, R, X, C) -> None:
         return
     for it in range(_NEWTON_MAX_ITERS):
         if it:
-            _cofactors(X, C)
-            det = X[0, 0] * C[0, 0] + X[0, 1] * C[0, 1] + X[0, 2] * C[0, 2]
-            norm_sq = 0.0
-            for i in range(3):
-                for j in range(3):
-                    norm_sq += X[i, j] * X[i, j]
+            det, norm_sq = _cofactors_det_norm(X, C)
         c_sq = 0.0
         for i in range(3):
             for j in range(3):
