@@ -211,12 +211,13 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     assert stage2_started == [10]
 
 
-def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body):
+def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monkeypatch):
     """avatar.rasterizer = numba turns the deformer's compiled skinning on, any other backend turns it off. It is
     taken for baked weights without gradients only, and poses the Gaussians as the torch skinning does (to float32
     rounding); with gradients the torch skinning runs and the posed means keep their graph."""
-    pytest.importorskip("numba")
     from torch import nn
+
+    import framework.rig.compiled_skinning as compiled
 
     avatar = _avatar(body)
     deformer = avatar.deformer
@@ -227,31 +228,26 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body):
     pose = 0.4 * torch.randn(1, body.num_joints, 3)
     batch = _batch(body, pose=pose)
     calls = []
-    import framework.rig.compiled_skinning as compiled
-
     original = compiled.lbs_with_sh_frames_compiled
 
     def counted(*args, **kwargs):
         calls.append(1)
         return original(*args, **kwargs)
 
-    compiled.lbs_with_sh_frames_compiled = counted
-    try:
-        avatar.rasterizer = RASTERIZERS.build("numba")
-        assert deformer.compiled_inference is True
-        avatar.eval()
-        with torch.no_grad():
-            _, posed_compiled, _ = avatar.pose(batch, sh_degree=1)
-        assert len(calls) == 1
-        _, posed_grad, _ = avatar.pose(batch, sh_degree=1)  # gradients on: the torch path
-        assert len(calls) == 1 and posed_grad.means.requires_grad
-        avatar.rasterizer = RASTERIZERS.build("torch_ref")
-        assert deformer.compiled_inference is False
-        with torch.no_grad():
-            _, posed_torch, _ = avatar.pose(batch, sh_degree=1)
-        assert len(calls) == 1
-    finally:
-        compiled.lbs_with_sh_frames_compiled = original
+    monkeypatch.setattr(compiled, "lbs_with_sh_frames_compiled", counted)
+    avatar.rasterizer = RASTERIZERS.build("numba")
+    assert deformer.compiled_inference is True
+    avatar.eval()
+    with torch.no_grad():
+        _, posed_compiled, _ = avatar.pose(batch, sh_degree=1)
+    assert len(calls) == 1
+    _, posed_grad, _ = avatar.pose(batch, sh_degree=1)  # gradients on: the torch path
+    assert len(calls) == 1 and posed_grad.means.requires_grad
+    avatar.rasterizer = RASTERIZERS.build("torch_ref")
+    assert deformer.compiled_inference is False
+    with torch.no_grad():
+        _, posed_torch, _ = avatar.pose(batch, sh_degree=1)
+    assert len(calls) == 1
     for key in ("means", "quats", "log_scales"):
         torch.testing.assert_close(getattr(posed_compiled, key), getattr(posed_torch, key), atol=2e-5, rtol=0,
                                    msg=key)  # fmt: skip

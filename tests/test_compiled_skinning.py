@@ -9,12 +9,9 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
+from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled
 from framework.rig.lbs import lbs_with_sh_frames
 from framework.types import Gaussians
-
-pytest.importorskip("numba", reason="numba: not installed (a core dependency; pip install -e .)")
-
-from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled  # noqa: E402
 
 F64 = torch.float64
 TOL = 1e-10  # both in float64: the polar iterations stop at different steps (per matrix here, per batch in torch)

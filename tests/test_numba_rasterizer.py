@@ -17,6 +17,8 @@ import pytest
 import torch
 from hypothesis import given, settings
 
+from framework.plugins import load_plugins
+from framework.registry import RASTERIZERS
 from framework.testing.conformance import (
     EXTREME_JUMP,
     EXTREME_VALUE_TOL,
@@ -26,11 +28,6 @@ from framework.testing.conformance import (
 )
 from framework.testing.properties import all_finite, within_tolerance_except_jumps
 from framework.testing.reference import reference_render
-
-pytest.importorskip("numba", reason="numba: not installed (a core dependency; pip install -e .)")
-
-from framework.plugins import load_plugins  # noqa: E402
-from framework.registry import RASTERIZERS  # noqa: E402
 
 FLOAT64_TOL = 1e-8  # same function, same precision: only the order of sums differs
 FLOAT32_TOL = 2e-5  # float32 rounding of inputs and outputs, per pixel, away from the cuts

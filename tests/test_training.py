@@ -266,7 +266,6 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, use_rasterizer
     from framework.lightning.trained_model import datamodule_for
 
-    pytest.importorskip("numba")
     dm = datamodule_for(module)
     poses = dm.split("novel_pose")
     module.eval()
@@ -274,8 +273,7 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     with torch.no_grad():
         batches = [poses[i] for i in distinct_frame_items(poses, 2)]
         ref = [module.avatar(b, sh_degree=sh_degree).render.rgb for b in batches]
-        use_rasterizer(module, "numba")
-        module.avatar.train(False)  # drops the posed cache, so the frames pose again
+        use_rasterizer(module, "numba")  # also drops the posed cache, so the frames pose again
         got = [module.avatar(b, sh_degree=sh_degree).render.rgb for b in batches]
     assert type(module.avatar.rasterizer).registry_name == "numba"
     for a, b in zip(got, ref, strict=True):

@@ -138,7 +138,7 @@ class LBSDeformerBase(Deformer):
         else:
             w = self.weights(gaussians.means)  # [N, J]
         if self._skins_compiled(gaussians, w, bone_transforms):
-            from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled
+            from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled  # imports numba: first use only
 
             posed, R = lbs_with_sh_frames_compiled(gaussians, w, bone_transforms, self.stretch, self.centres)
         else:

@@ -183,8 +183,7 @@ def lbs_with_sh_frames_compiled(gaussians, weights, transforms, stretch: str = "
     gradients, CPU tensors; results in the Gaussians' dtype."""
     import torch
 
-    def f64(t):
-        return t.detach().to(torch.float64).contiguous().numpy()
+    from framework.splat.compiled_cpu import float64_array as f64
 
     N, dtype = gaussians.means.shape[0], gaussians.means.dtype
     out_means, out_quats, out_log_scales = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))

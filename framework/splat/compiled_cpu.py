@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 from numba import njit
 
 from framework.splat.contract import ALPHA_MAX, ALPHA_MIN, BOX_MARGIN, TRANSMITTANCE_MIN
@@ -28,6 +29,11 @@ from framework.splat.projection import EXTEND_MAX, FOV_MARGIN
 
 _BIG = float(2**30)  # the projection's cap on a half extent (as `framework.splat.projection`)
 _TINY = 1.1754943508222875e-38  # float32's smallest normal: the conic's a is clamped to it before dividing
+
+
+def float64_array(t: torch.Tensor) -> np.ndarray:
+    """A CPU tensor as the contiguous float64 array the compiled loops read (a copy unless it already is one)."""
+    return t.detach().to(torch.float64).contiguous().numpy()
 
 
 @njit(cache=True, nogil=True)

@@ -34,10 +34,6 @@ def _numba_unavailable() -> str | None:
     return None
 
 
-def _np64(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float64).contiguous().numpy()
-
-
 @register("rasterizer", "numba", requires=_numba_unavailable)
 class NumbaRasterizer(Rasterizer):
     """torch_ref's contract; forward-only renders as compiled loops, gradient renders by torch_ref."""
@@ -76,7 +72,9 @@ class NumbaRasterizer(Rasterizer):
         if not self.compiled((means, quats, scales, opacities, sh)) or cameras.device.type != "cpu":
             return self._reference.render(means, quats, scales, opacities, sh, cameras, sh_degree=sh_degree,
                                           background=background, near=near, far=far)  # fmt: skip
+        # here, not at module level: plugin discovery imports every backend, and numba's import costs about 0.5 s
         from framework.splat import compiled_cpu
+        from framework.splat.compiled_cpu import float64_array as _np64
         from plugins.rasterizer.torch_ref import sh_colors
 
         C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
