@@ -60,8 +60,9 @@ VARIANTS: dict[str, list[str]] = {
     "default": [],
     "log_every_step": ["trainer.log_every=1"],
     "polar_float64": ["deformer.polar_dtype=float64"],
-    "compile": ["rasterizer.compile=true"],
+    "compile": ["rasterizer=torch_ref", "rasterizer.compile=true"],
     "data_worker": ["data_loader.num_workers=1"],
+    "torch_ref": ["rasterizer=torch_ref"],
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "polar_float64"]
 

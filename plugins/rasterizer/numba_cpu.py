@@ -24,6 +24,33 @@ from torch import Tensor
 from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
 from framework.registry import register
 from framework.types import BlendWeights, Cameras, RenderOutput
+from plugins.rasterizer.torch_ref import TorchRefRasterizer
+
+
+class _CompiledCompositing(TorchRefRasterizer):
+    """torch_ref's differentiable render with its compositing step compiled on the CPU (float32 and float64): the
+    projection and colours keep their autograd graph, so densification's `means2d.grad` is filled as before."""
+
+    def composite_entries(
+        self,
+        means2d: Tensor,  # [M, 2]
+        conics: Tensor,  # [M, 3]
+        opacities: Tensor,  # [M]
+        colors: Tensor,  # [M, 3]
+        depths: Tensor,  # [M]
+        cam: Tensor,  # [M]
+        half: Tensor,  # [M, 2]
+        num_cameras: int,
+        width: int,
+        height: int,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        if means2d.device.type != "cpu" or means2d.dtype not in (torch.float32, torch.float64):
+            return super().composite_entries(means2d, conics, opacities, colors, depths, cam, half, num_cameras,
+                                             width, height)  # fmt: skip
+        from framework.splat.compiled_composite import CompiledComposite  # lazy: numba's import (module docstring)
+
+        return CompiledComposite.apply(means2d, conics, opacities, colors, depths, half.detach(), cam, num_cameras,
+                                       width, height)  # fmt: skip
 
 
 def _numba_unavailable() -> str | None:
@@ -42,9 +69,7 @@ class NumbaRasterizer(Rasterizer):
     compiled_inference = True
 
     def __init__(self) -> None:
-        from plugins.rasterizer.torch_ref import TorchRefRasterizer
-
-        self._reference = TorchRefRasterizer()
+        self._reference = _CompiledCompositing()
 
     @staticmethod
     def compiled(tensors: tuple[Tensor, ...]) -> bool:

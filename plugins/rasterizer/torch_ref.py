@@ -364,7 +364,7 @@ class TorchRefRasterizer(Rasterizer):
             colors = sh_colors(
                 sh_degree, sh.index_select(0, gid), means.index_select(0, gid) - centers.index_select(0, cam)
             )
-        rgb, T_final, depth = composite(
+        rgb, T_final, depth = self.composite_entries(
             means2d.reshape(-1, 2).index_select(0, flat),
             proj.conics.reshape(-1, 3).index_select(0, flat),
             opacities.index_select(0, gid),
@@ -375,7 +375,6 @@ class TorchRefRasterizer(Rasterizer):
             C,
             W,
             H,
-            self._kernels,
         )
         rgb = rgb + T_final[:, None] * bg
         return RenderOutput(
@@ -385,6 +384,24 @@ class TorchRefRasterizer(Rasterizer):
             means2d=means2d,
             radii=proj.radii,
         )
+
+    def composite_entries(
+        self,
+        means2d: Tensor,  # [M, 2]
+        conics: Tensor,  # [M, 3]
+        opacities: Tensor,  # [M]
+        colors: Tensor,  # [M, 3]
+        depths: Tensor,  # [M]
+        cam: Tensor,  # [M]
+        half: Tensor,  # [M, 2]
+        num_cameras: int,
+        width: int,
+        height: int,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The depth-ordered entries -> per pixel of the stacked cameras (rgb sum [CHW, 3], T_final [CHW], depth
+        [CHW]), differentiable. The one step a subclass may replace (`numba` does, with compiled loops on the CPU)."""
+        return composite(means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height,
+                         self._kernels)  # fmt: skip
 
     @torch.no_grad()
     def blend_weights(
