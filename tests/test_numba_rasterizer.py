@@ -182,3 +182,44 @@ def test_unused_outputs_and_an_empty_image(backends) -> None:
     out.rgb.sum().backward()
     assert out.means2d.grad is not None and float(out.means2d.grad.abs().max()) == 0.0
     assert float(out.alpha.detach().max()) == 0.0
+
+
+def test_compiled_projection_gradients_equal_autograd_through_project_gaussians() -> None:
+    """The hand-written projection backward against autograd through `project_gaussians`, float64, three cameras:
+    Gaussians past the field-of-view clamp (its slope is 0 there), zero and tiny quaternions, needle-thin scales."""
+    from framework.splat.compiled_projection import project_compiled
+    from framework.splat.projection import project_gaussians
+
+    scene = make_random_scene(8, 400, 48, 40, dtype=torch.float64, num_cameras=3, sh_degree=0)
+    means = scene.means.detach().clone()
+    means[:60] *= 4.0  # far outside the view: culled, or kept by a large box past the clamp
+    scales = scene.scales.detach().clone()
+    scales[:60] *= 20.0
+    scales[60:70, 0] *= 1e-4  # needles
+    quats = scene.quats.detach().clone()
+    quats[70:75] = 0.0  # the identity, a constant
+    quats[75:80] *= 1e-9
+    cams = scene.cameras
+    outs, grads = [], []
+    for project in (project_compiled, project_gaussians):
+        params = [t.clone().requires_grad_() for t in (means, quats, scales)]
+        p = project(*params, scene.opacities, cams.K, cams.world_to_cam, cams.width, cams.height, 0.01, 1e10)
+        valid = p.valid
+        w = [torch.rand(t.shape, generator=torch.Generator().manual_seed(i), dtype=t.dtype) for i, t in
+             enumerate((p.means2d, p.conics, p.depths))]  # fmt: skip
+        loss = ((p.means2d * w[0]).sum(-1) + (p.conics * w[1]).sum(-1) + p.depths * w[2])[valid].sum()
+        loss.backward()
+        outs.append(p)
+        grads.append([t.grad for t in params])
+    got, ref = outs
+    assert torch.equal(got.valid, ref.valid) and torch.equal(got.radii, ref.radii)
+    size = torch.tensor([cams.width, cams.height], dtype=torch.float64)
+    past = ((got.means2d < -0.15 * size) | (got.means2d > 1.15 * size)).any(-1)  # centre beyond the widened view
+    assert int((got.valid & past).sum()) >= 3  # kept by their boxes: the clamp's zero slope is exercised
+    for key in ("means2d", "conics", "depths", "half_extents"):
+        v = got.valid
+        torch.testing.assert_close(getattr(got, key)[v], getattr(ref, key)[v], atol=1e-9, rtol=1e-9, msg=key)
+    for name, a, b in zip(("means", "quats", "scales"), *grads, strict=True):
+        assert torch.isfinite(a).all(), name
+        torch.testing.assert_close(a, b, atol=1e-9 * max(1.0, float(b.abs().max())), rtol=1e-9, msg=name)
+    assert float(grads[0][1][70:75].abs().max()) == 0.0  # zero quaternions: no gradient

@@ -49,14 +49,17 @@ def _clamp_index(v: float, lo: int, hi: int) -> int:
 
 @njit(cache=True, nogil=True)
 def project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far, eps2d,
-            means2d, conics, depths, half, radii, valid):  # fmt: skip
+            means2d, conics, depths, half, radii, valid, cov2d):  # fmt: skip
     """EWA projection of N Gaussians into C cameras, the rules of `framework.splat.projection.project_gaussians`.
 
     In: means [N, 3], quats [N, 4] (wxyz, any norm), scales [N, 3], opacities [N], K [C, 3, 3], world_to_cam
     [C, 4, 4]. Out (written): means2d [C, N, 2], conics [C, N, 3], depths [C, N], half [C, N, 2] (0 where culled),
-    radii [C, N] (0 where culled), valid [C, N]."""
+    radii [C, N] (0 where culled), valid [C, N], cov2d [C, N, 3] (the dilated Sigma2d's xx, xy, yy)."""
     C, N = K.shape[0], means.shape[0]
     extend = np.empty(N)
+    rs = np.empty((3, 3))  # scratch, reused per entry (an allocation per entry costs more than its arithmetic)
+    t0 = np.empty(3)
+    t1 = np.empty(3)
     for n in range(N):
         extend[n] = min(math.sqrt(2.0 * math.log(max(opacities[n] / ALPHA_MIN, 1.0))), EXTEND_MAX)
     for c in range(C):
@@ -79,13 +82,10 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
                 w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
             else:
                 w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-            rs = np.empty((3, 3))
             rs[0, 0], rs[0, 1], rs[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
             rs[1, 0], rs[1, 1], rs[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
             rs[2, 0], rs[2, 1], rs[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
-            t0 = np.empty(3)
-            t1 = np.empty(3)
             for j in range(3):  # column j of W R S, then the Jacobian's two rows applied to it
                 s = scales[n, j]
                 w0 = (Rc[0, 0] * rs[0, j] + Rc[0, 1] * rs[1, j] + Rc[0, 2] * rs[2, j]) * s
@@ -102,6 +102,7 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
             ok_det = det > 0
             inv = 1.0 / det if ok_det else 1.0
             means2d[c, n, 0], means2d[c, n, 1] = mx, my
+            cov2d[c, n, 0], cov2d[c, n, 1], cov2d[c, n, 2] = cxx, cxy, cyy
             conics[c, n, 0], conics[c, n, 1], conics[c, n, 2] = cyy * inv, -cxy * inv, cxx * inv
             depths[c, n] = z
             hx = math.sqrt(max(cxx, 0.0)) * extend[n]
@@ -118,6 +119,126 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
             radii[c, n] = int(radius) if ok else 0
             half[c, n, 0] = hx if ok else 0.0
             half[c, n, 1] = hy if ok else 0.0
+
+
+@njit(cache=True, nogil=True)
+def project_backward(means, quats, scales, K, world_to_cam, width, height, eps2d, valid,
+                     g_means2d, g_conics, g_depths, g_means, g_quats, g_scales):  # fmt: skip
+    """The gradients of `project`'s means2d, conics and depths with respect to means, quats and scales.
+
+    In: the forward's inputs and its `valid` [C, N]; g_means2d [C, N, 2], g_conics [C, N, 3], g_depths [C, N]. Out
+    (added to): g_means [N, 3], g_quats [N, 4], g_scales [N, 3]. Culled entries contribute nothing (their values
+    are constants of the render). Per entry, the forward is recomputed and the chain rule applied step by step in
+    reverse, the same derivatives autograd takes through `framework.splat.projection.project_gaussians`: the conic
+    through the determinant in Lagrange's form, the Jacobian rows at the field-of-view clamp (whose slope is 0
+    outside the widened view), the quaternion through its normalisation (zero below NORM_EPS)."""
+    C, N = K.shape[0], means.shape[0]
+    rot, wm, g_wm, g_rot = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))  # scratch per entry
+    t0, t1, g_t0, g_t1 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # (wm: W R S, row i = camera axis i)
+    for c in range(C):
+        fx, fy, cx, cy = K[c, 0, 0], K[c, 1, 1], K[c, 0, 2], K[c, 1, 2]
+        u_lo, v_lo = -(cx + 0.5 * FOV_MARGIN * width) / fx, -(cy + 0.5 * FOV_MARGIN * height) / fy
+        u_hi, v_hi = ((1.0 + 0.5 * FOV_MARGIN) * width - cx) / fx, ((1.0 + 0.5 * FOV_MARGIN) * height - cy) / fy
+        Rc = world_to_cam[c, :3, :3]
+        for n in range(N):
+            if not valid[c, n]:
+                continue
+            x = Rc[0, 0] * means[n, 0] + Rc[0, 1] * means[n, 1] + Rc[0, 2] * means[n, 2] + world_to_cam[c, 0, 3]
+            y = Rc[1, 0] * means[n, 0] + Rc[1, 1] * means[n, 1] + Rc[1, 2] * means[n, 2] + world_to_cam[c, 1, 3]
+            z = Rc[2, 0] * means[n, 0] + Rc[2, 1] * means[n, 1] + Rc[2, 2] * means[n, 2] + world_to_cam[c, 2, 3]
+            rz = 1.0 / z  # valid entries are inside the depth range
+            u, v = x * rz, y * rz
+            w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
+            qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, 1e-24))
+            unit = qn > 1e-12
+            if unit:
+                w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
+            else:
+                w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+            rot[0, 0], rot[0, 1], rot[0, 2] = (
+                1 - 2 * (qy * qy + qz * qz),
+                2 * (qx * qy - w * qz),
+                2 * (qx * qz + w * qy),
+            )
+            rot[1, 0], rot[1, 1], rot[1, 2] = (
+                2 * (qx * qy + w * qz),
+                1 - 2 * (qx * qx + qz * qz),
+                2 * (qy * qz - w * qx),
+            )
+            rot[2, 0], rot[2, 1], rot[2, 2] = (
+                2 * (qx * qz - w * qy),
+                2 * (qy * qz + w * qx),
+                1 - 2 * (qx * qx + qy * qy),
+            )
+            uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
+            a0, a1 = fx * rz, fy * rz
+            for j in range(3):
+                s = scales[n, j]
+                for i in range(3):
+                    wm[i, j] = (Rc[i, 0] * rot[0, j] + Rc[i, 1] * rot[1, j] + Rc[i, 2] * rot[2, j]) * s
+                t0[j] = (wm[0, j] - uc * wm[2, j]) * a0
+                t1[j] = (wm[1, j] - vc * wm[2, j]) * a1
+            cxx = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + eps2d
+            cxy = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
+            cyy = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + eps2d
+            k0 = t0[1] * t1[2] - t0[2] * t1[1]  # T0 x T1
+            k1 = t0[2] * t1[0] - t0[0] * t1[2]
+            k2 = t0[0] * t1[1] - t0[1] * t1[0]
+            det = k0 * k0 + k1 * k1 + k2 * k2 + eps2d * (cxx + cyy - eps2d)
+            inv = 1.0 / det
+            # conic = (cyy, -cxy, cxx) / det
+            ga, gb, gc = g_conics[c, n, 0], g_conics[c, n, 1], g_conics[c, n, 2]
+            g_det = -(ga * cyy - gb * cxy + gc * cxx) * inv * inv
+            g_cxx = gc * inv + eps2d * g_det
+            g_cyy = ga * inv + eps2d * g_det
+            g_cxy = -gb * inv
+            # d|T0 x T1|^2: T0 gets 2 (T1 x k), T1 gets 2 (k x T0)
+            g_t0[0] = 2 * g_det * (t1[1] * k2 - t1[2] * k1) + 2 * g_cxx * t0[0] + g_cxy * t1[0]
+            g_t0[1] = 2 * g_det * (t1[2] * k0 - t1[0] * k2) + 2 * g_cxx * t0[1] + g_cxy * t1[1]
+            g_t0[2] = 2 * g_det * (t1[0] * k1 - t1[1] * k0) + 2 * g_cxx * t0[2] + g_cxy * t1[2]
+            g_t1[0] = 2 * g_det * (k1 * t0[2] - k2 * t0[1]) + 2 * g_cyy * t1[0] + g_cxy * t0[0]
+            g_t1[1] = 2 * g_det * (k2 * t0[0] - k0 * t0[2]) + 2 * g_cyy * t1[1] + g_cxy * t0[1]
+            g_t1[2] = 2 * g_det * (k0 * t0[1] - k1 * t0[0]) + 2 * g_cyy * t1[2] + g_cxy * t0[2]
+            # T0 = (W0 - uc W2) a0, T1 = (W1 - vc W2) a1
+            g_uc = g_vc = g_a0 = g_a1 = 0.0
+            for j in range(3):
+                g_wm[0, j] = a0 * g_t0[j]
+                g_wm[1, j] = a1 * g_t1[j]
+                g_wm[2, j] = -uc * a0 * g_t0[j] - vc * a1 * g_t1[j]
+                g_uc -= a0 * wm[2, j] * g_t0[j]
+                g_vc -= a1 * wm[2, j] * g_t1[j]
+                g_a0 += (wm[0, j] - uc * wm[2, j]) * g_t0[j]
+                g_a1 += (wm[1, j] - vc * wm[2, j]) * g_t1[j]
+            g_rz = fx * g_a0 + fy * g_a1
+            g_u = fx * g_means2d[c, n, 0] + (g_uc if u_lo <= u <= u_hi else 0.0)
+            g_v = fy * g_means2d[c, n, 1] + (g_vc if v_lo <= v <= v_hi else 0.0)
+            g_rz += x * g_u + y * g_v
+            g_x, g_y = rz * g_u, rz * g_v
+            g_z = g_depths[c, n] - rz * rz * g_rz
+            for i in range(3):
+                g_means[n, i] += Rc[0, i] * g_x + Rc[1, i] * g_y + Rc[2, i] * g_z
+            # W R S = Rc (rot S): d(rot S) = Rc^T dW; then rot and S
+            for j in range(3):
+                s = scales[n, j]
+                g_s = 0.0
+                for k in range(3):
+                    g_m = Rc[0, k] * g_wm[0, j] + Rc[1, k] * g_wm[1, j] + Rc[2, k] * g_wm[2, j]
+                    g_rot[k, j] = g_m * s
+                    g_s += g_m * rot[k, j]
+                g_scales[n, j] += g_s
+            if not unit:
+                continue  # the identity of a zero quaternion is a constant
+            s01, s02, s12 = g_rot[0, 1] + g_rot[1, 0], g_rot[0, 2] + g_rot[2, 0], g_rot[1, 2] + g_rot[2, 1]
+            d01, d02, d12 = g_rot[1, 0] - g_rot[0, 1], g_rot[0, 2] - g_rot[2, 0], g_rot[2, 1] - g_rot[1, 2]
+            gw = 2 * (qz * d01 + qy * d02 + qx * d12)
+            gx = 2 * (qy * s01 + qz * s02 + w * d12 - 2 * qx * (g_rot[1, 1] + g_rot[2, 2]))
+            gy = 2 * (qx * s01 + w * d02 + qz * s12 - 2 * qy * (g_rot[0, 0] + g_rot[2, 2]))
+            gz = 2 * (w * d01 + qx * s02 + qy * s12 - 2 * qz * (g_rot[0, 0] + g_rot[1, 1]))
+            radial = w * gw + qx * gx + qy * gy + qz * gz  # through q / |q|: drop the radial part
+            g_quats[n, 0] += (gw - w * radial) / qn
+            g_quats[n, 1] += (gx - qx * radial) / qn
+            g_quats[n, 2] += (gy - qy * radial) / qn
+            g_quats[n, 3] += (gz - qz * radial) / qn
 
 
 @njit(cache=True, nogil=True)

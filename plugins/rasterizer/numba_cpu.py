@@ -1,17 +1,19 @@
-"""`numba`: `torch_ref`'s function on the CPU, with every render that needs no gradient run as compiled loops.
+"""`numba`: `torch_ref`'s function on the CPU as compiled loops; the CPU default for training and rendering.
 
 Viewing, evaluation, frame-rate timing and the novel-view and novel-pose frames of a trained avatar render without
-gradients. At the sizes a CPU renders in real time, the eager rasterizer's time there is mostly per-operation
-overhead (`framework.splat.compiled_cpu` says why and how the loops avoid it). A render whose inputs require
-gradients (training) is handed to `torch_ref`, so the backward, densification's `means2d.grad` and the blending
-weights pruning reads have one implementation. Inputs on another device, or in half precision, are handed over too.
+gradients: there projection and compositing both run compiled. At the sizes a CPU renders in real time, the eager
+rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the loops avoid
+it). A render whose inputs require gradients (training) runs `torch_ref`'s code with one step replaced: the
+compositing, forward and backward, by `framework.splat.compiled_composite`. The projection and the colours keep
+their autograd graph, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
+`torch_ref`'s. Inputs on another device, or in half precision, run `torch_ref` itself.
 
 An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
 (`framework.rig.compiled_skinning`, for LBS deformers with baked weights), so the whole CPU frame but F_a and the
 bone transforms runs compiled.
 
-The first render on a machine compiles the loops: about 5 s for the rasterizer and 9 s more for the skinning on the
-2-core VM (measured with a test run beside it). numba caches them in `__pycache__`, and a later process loads them
+The first render on a machine compiles the loops: about 5 s for the rasterizer, 9 s more for the skinning and a few
+more for the compositing backward on the 2-core VM (measured with a test run beside it). numba caches them in `__pycache__`, and a later process loads them
 in about 1 s, numba's import included.
 """
 
@@ -23,13 +25,38 @@ from torch import Tensor
 
 from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
 from framework.registry import register
+from framework.splat.projection import Projection
 from framework.types import BlendWeights, Cameras, RenderOutput
 from plugins.rasterizer.torch_ref import TorchRefRasterizer
+
+
+def _compiled_here(t: Tensor) -> bool:
+    """Whether a training render of this tensor runs the compiled loops: on the CPU, in float32 or float64."""
+    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
 
 
 class _CompiledCompositing(TorchRefRasterizer):
     """torch_ref's differentiable render with its compositing step compiled on the CPU (float32 and float64): the
     projection and colours keep their autograd graph, so densification's `means2d.grad` is filled as before."""
+
+    def project(
+        self,
+        means: Tensor,  # [N, 3]
+        quats: Tensor,  # [N, 4]
+        scales: Tensor,  # [N, 3]
+        opacities: Tensor,  # [N]
+        K: Tensor,  # [C, 3, 3]
+        world_to_cam: Tensor,  # [C, 4, 4]
+        width: int,
+        height: int,
+        near: float,
+        far: float,
+    ) -> Projection:
+        if not _compiled_here(means) or K.requires_grad or world_to_cam.requires_grad:
+            return super().project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far)
+        from framework.splat.compiled_projection import project_compiled  # lazy: numba's import (module docstring)
+
+        return project_compiled(means, quats, scales, opacities, K, world_to_cam, width, height, near, far)
 
     def composite_entries(
         self,
@@ -44,7 +71,7 @@ class _CompiledCompositing(TorchRefRasterizer):
         width: int,
         height: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        if means2d.device.type != "cpu" or means2d.dtype not in (torch.float32, torch.float64):
+        if not _compiled_here(means2d):
             return super().composite_entries(means2d, conics, opacities, colors, depths, cam, half, num_cameras,
                                              width, height)  # fmt: skip
         from framework.splat.compiled_composite import CompiledComposite  # lazy: numba's import (module docstring)
@@ -63,7 +90,7 @@ def _numba_unavailable() -> str | None:
 
 @register("rasterizer", "numba", requires=_numba_unavailable)
 class NumbaRasterizer(Rasterizer):
-    """torch_ref's contract; forward-only renders as compiled loops, gradient renders by torch_ref."""
+    """torch_ref's contract; forward-only renders as compiled loops, gradient renders with compiled compositing."""
 
     #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`)
     compiled_inference = True
@@ -113,7 +140,7 @@ class NumbaRasterizer(Rasterizer):
         opacity = _np64(opacities)  # [N]
         compiled_cpu.project(_np64(means), _np64(quats), _np64(scales), opacity, _np64(cameras.K),
                              _np64(cameras.world_to_cam), W, H, float(near), float(far), EPS2D,
-                             means2d, conics, depths, half, radii, valid)  # fmt: skip
+                             means2d, conics, depths, half, radii, valid, np.empty((C, N, 3)))  # fmt: skip
         centers = cameras.centers().to(dtype)  # [C, 3]
         colors = _np64(sh_colors(sh_degree, sh, means[None] - centers[:, None]))  # [C, N, 3]
         bg = np.zeros(3) if background is None else _np64(background.reshape(3))  # [3]

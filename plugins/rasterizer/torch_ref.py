@@ -36,7 +36,7 @@ from framework.interfaces.rasterizer import (
 from framework.registry import register
 from framework.splat.bands import row_bands
 from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_pairs_by_pixel
-from framework.splat.projection import project_gaussians
+from framework.splat.projection import Projection, project_gaussians
 from framework.splat.sh import eval_sh
 from framework.types import BlendWeights, Cameras, RenderOutput
 
@@ -347,7 +347,7 @@ class TorchRefRasterizer(Rasterizer):
         dtype, dev = means.dtype, means.device
         K = cameras.K.to(dev, dtype)
         w2c = cameras.world_to_cam.to(dev, dtype)
-        proj = project_gaussians(means, quats, scales, opacities, K, w2c, W, H, near=near, far=far)
+        proj = self.project(means, quats, scales, opacities, K, w2c, W, H, near, far)
         means2d = proj.means2d  # [C, N, 2]
         if means2d.requires_grad:
             means2d.retain_grad()
@@ -385,6 +385,22 @@ class TorchRefRasterizer(Rasterizer):
             radii=proj.radii,
         )
 
+    def project(
+        self,
+        means: Tensor,  # [N, 3]
+        quats: Tensor,  # [N, 4]
+        scales: Tensor,  # [N, 3]
+        opacities: Tensor,  # [N]
+        K: Tensor,  # [C, 3, 3]
+        world_to_cam: Tensor,  # [C, 4, 4]
+        width: int,
+        height: int,
+        near: float,
+        far: float,
+    ) -> Projection:
+        """The EWA projection (`framework.splat.projection`), differentiable; a subclass may replace it (`numba`)."""
+        return project_gaussians(means, quats, scales, opacities, K, world_to_cam, width, height, near=near, far=far)
+
     def composite_entries(
         self,
         means2d: Tensor,  # [M, 2]
@@ -399,7 +415,7 @@ class TorchRefRasterizer(Rasterizer):
         height: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The depth-ordered entries -> per pixel of the stacked cameras (rgb sum [CHW, 3], T_final [CHW], depth
-        [CHW]), differentiable. The one step a subclass may replace (`numba` does, with compiled loops on the CPU)."""
+        [CHW]), differentiable; a subclass may replace it (`numba` does, with compiled loops on the CPU)."""
         return composite(means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height,
                          self._kernels)  # fmt: skip
 
