@@ -48,6 +48,44 @@ def _clamp_index(v: float, lo: int, hi: int) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _view_limits(K, c, width, height):
+    """Camera c's fx, fy, cx, cy and the limits of x/z, y/z in its field of view widened by FOV_MARGIN (3DGS)."""
+    fx, fy, cx, cy = K[c, 0, 0], K[c, 1, 1], K[c, 0, 2], K[c, 1, 2]
+    u_lo, v_lo = -(cx + 0.5 * FOV_MARGIN * width) / fx, -(cy + 0.5 * FOV_MARGIN * height) / fy
+    u_hi, v_hi = ((1.0 + 0.5 * FOV_MARGIN) * width - cx) / fx, ((1.0 + 0.5 * FOV_MARGIN) * height - cy) / fy
+    return fx, fy, cx, cy, u_lo, v_lo, u_hi, v_hi
+
+
+@njit(cache=True, nogil=True)
+def _to_camera(world_to_cam, c, means, n):
+    """Gaussian n's centre in camera c's frame: (x, y, z)."""
+    m0, m1, m2 = means[n, 0], means[n, 1], means[n, 2]
+    w = world_to_cam[c]
+    x = w[0, 0] * m0 + w[0, 1] * m1 + w[0, 2] * m2 + w[0, 3]
+    y = w[1, 0] * m0 + w[1, 1] * m1 + w[1, 2] * m2 + w[1, 3]
+    z = w[2, 0] * m0 + w[2, 1] * m1 + w[2, 2] * m2 + w[2, 3]
+    return x, y, z
+
+
+@njit(cache=True, nogil=True)
+def _unit_rotation(quats, n, rot):
+    """Writes the rotation of Gaussian n's normalised quaternion into rot [3, 3]; returns (w, x, y, z, |q|, unit).
+
+    A norm <= 1e-12 counts as the identity (`framework.guards.NORM_EPS`), with `unit` False: a constant."""
+    w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
+    qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, 1e-24))
+    unit = qn > 1e-12
+    if unit:
+        w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
+    else:
+        w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+    rot[0, 0], rot[0, 1], rot[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
+    rot[1, 0], rot[1, 1], rot[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
+    rot[2, 0], rot[2, 1], rot[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
+    return w, qx, qy, qz, qn, unit
+
+
+@njit(cache=True, nogil=True)
 def project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far, eps2d,
             means2d, conics, depths, half, radii, valid, cov2d):  # fmt: skip
     """EWA projection of N Gaussians into C cameras, the rules of `framework.splat.projection.project_gaussians`.
@@ -63,28 +101,15 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
     for n in range(N):
         extend[n] = min(math.sqrt(2.0 * math.log(max(opacities[n] / ALPHA_MIN, 1.0))), EXTEND_MAX)
     for c in range(C):
-        fx, fy, cx, cy = K[c, 0, 0], K[c, 1, 1], K[c, 0, 2], K[c, 1, 2]
-        u_lo, v_lo = -(cx + 0.5 * FOV_MARGIN * width) / fx, -(cy + 0.5 * FOV_MARGIN * height) / fy
-        u_hi, v_hi = ((1.0 + 0.5 * FOV_MARGIN) * width - cx) / fx, ((1.0 + 0.5 * FOV_MARGIN) * height - cy) / fy
+        fx, fy, cx, cy, u_lo, v_lo, u_hi, v_hi = _view_limits(K, c, width, height)
         Rc = world_to_cam[c, :3, :3]
         for n in range(N):
-            x = Rc[0, 0] * means[n, 0] + Rc[0, 1] * means[n, 1] + Rc[0, 2] * means[n, 2] + world_to_cam[c, 0, 3]
-            y = Rc[1, 0] * means[n, 0] + Rc[1, 1] * means[n, 1] + Rc[1, 2] * means[n, 2] + world_to_cam[c, 1, 3]
-            z = Rc[2, 0] * means[n, 0] + Rc[2, 1] * means[n, 1] + Rc[2, 2] * means[n, 2] + world_to_cam[c, 2, 3]
+            x, y, z = _to_camera(world_to_cam, c, means, n)
             in_depth = z > near and z < far
             rz = 1.0 / z if in_depth else 1.0
             u, v = x * rz, y * rz
             mx, my = cx + fx * u, cy + fy * v
-            # rotation of the normalised quaternion (a norm <= 1e-12 counts as the identity), times the scales
-            w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
-            qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, 1e-24))
-            if qn > 1e-12:
-                w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
-            else:
-                w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-            rs[0, 0], rs[0, 1], rs[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
-            rs[1, 0], rs[1, 1], rs[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
-            rs[2, 0], rs[2, 1], rs[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
+            _unit_rotation(quats, n, rs)  # then times the scales, column by column below
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
             for j in range(3):  # column j of W R S, then the Jacobian's two rows applied to it
                 s = scales[n, j]
@@ -136,40 +161,15 @@ def project_backward(means, quats, scales, K, world_to_cam, width, height, eps2d
     rot, wm, g_wm, g_rot = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))  # scratch per entry
     t0, t1, g_t0, g_t1 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # (wm: W R S, row i = camera axis i)
     for c in range(C):
-        fx, fy, cx, cy = K[c, 0, 0], K[c, 1, 1], K[c, 0, 2], K[c, 1, 2]
-        u_lo, v_lo = -(cx + 0.5 * FOV_MARGIN * width) / fx, -(cy + 0.5 * FOV_MARGIN * height) / fy
-        u_hi, v_hi = ((1.0 + 0.5 * FOV_MARGIN) * width - cx) / fx, ((1.0 + 0.5 * FOV_MARGIN) * height - cy) / fy
+        fx, fy, cx, cy, u_lo, v_lo, u_hi, v_hi = _view_limits(K, c, width, height)
         Rc = world_to_cam[c, :3, :3]
         for n in range(N):
             if not valid[c, n]:
                 continue
-            x = Rc[0, 0] * means[n, 0] + Rc[0, 1] * means[n, 1] + Rc[0, 2] * means[n, 2] + world_to_cam[c, 0, 3]
-            y = Rc[1, 0] * means[n, 0] + Rc[1, 1] * means[n, 1] + Rc[1, 2] * means[n, 2] + world_to_cam[c, 1, 3]
-            z = Rc[2, 0] * means[n, 0] + Rc[2, 1] * means[n, 1] + Rc[2, 2] * means[n, 2] + world_to_cam[c, 2, 3]
+            x, y, z = _to_camera(world_to_cam, c, means, n)
             rz = 1.0 / z  # valid entries are inside the depth range
             u, v = x * rz, y * rz
-            w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
-            qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, 1e-24))
-            unit = qn > 1e-12
-            if unit:
-                w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
-            else:
-                w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-            rot[0, 0], rot[0, 1], rot[0, 2] = (
-                1 - 2 * (qy * qy + qz * qz),
-                2 * (qx * qy - w * qz),
-                2 * (qx * qz + w * qy),
-            )
-            rot[1, 0], rot[1, 1], rot[1, 2] = (
-                2 * (qx * qy + w * qz),
-                1 - 2 * (qx * qx + qz * qz),
-                2 * (qy * qz - w * qx),
-            )
-            rot[2, 0], rot[2, 1], rot[2, 2] = (
-                2 * (qx * qz - w * qy),
-                2 * (qy * qz + w * qx),
-                1 - 2 * (qx * qx + qy * qy),
-            )
+            w, qx, qy, qz, qn, unit = _unit_rotation(quats, n, rot)
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
             a0, a1 = fx * rz, fy * rz
             for j in range(3):

@@ -3,9 +3,10 @@
 Viewing, evaluation, frame-rate timing and the novel-view and novel-pose frames of a trained avatar render without
 gradients: there projection and compositing both run compiled. At the sizes a CPU renders in real time, the eager
 rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the loops avoid
-it). A render whose inputs require gradients (training) runs `torch_ref`'s code with one step replaced: the
-compositing, forward and backward, by `framework.splat.compiled_composite`. The projection and the colours keep
-their autograd graph, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
+it). A render whose inputs require gradients (training) runs `torch_ref`'s render with two steps replaced by
+compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
+compositing (`framework.splat.compiled_composite`). The SH colours keep torch_ref's autograd code, and means2d is
+still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
 `torch_ref`'s. Inputs on another device, or in half precision, run `torch_ref` itself.
 
 An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
@@ -13,8 +14,8 @@ An avatar that renders with this backend also poses its Gaussians with compiled 
 bone transforms runs compiled.
 
 The first render on a machine compiles the loops: about 5 s for the rasterizer, 9 s more for the skinning and a few
-more for the compositing backward on the 2-core VM (measured with a test run beside it). numba caches them in `__pycache__`, and a later process loads them
-in about 1 s, numba's import included.
+more for the backward passes on the 2-core VM (measured with a test run beside it). numba caches them in
+`__pycache__`, and a later process loads them in about 1 s, numba's import included.
 """
 
 from __future__ import annotations
@@ -35,9 +36,9 @@ def _compiled_here(t: Tensor) -> bool:
     return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
 
 
-class _CompiledCompositing(TorchRefRasterizer):
-    """torch_ref's differentiable render with its compositing step compiled on the CPU (float32 and float64): the
-    projection and colours keep their autograd graph, so densification's `means2d.grad` is filled as before."""
+class _CompiledTraining(TorchRefRasterizer):
+    """torch_ref's differentiable render with its projection and compositing compiled on the CPU (float32 and
+    float64); other devices and dtypes keep torch_ref's own steps."""
 
     def project(
         self,
@@ -96,7 +97,7 @@ class NumbaRasterizer(Rasterizer):
     compiled_inference = True
 
     def __init__(self) -> None:
-        self._reference = _CompiledCompositing()
+        self._reference = _CompiledTraining()
 
     @staticmethod
     def compiled(tensors: tuple[Tensor, ...]) -> bool:
