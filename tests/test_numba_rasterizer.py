@@ -146,6 +146,21 @@ def test_float32_gradients_within_rounding_of_float64(backends, seed, n, width, 
         assert ours <= max(2.0 * theirs, 1e-6), (name, ours, theirs)
 
 
+def test_gradients_at_clamped_alpha_and_early_termination(backends) -> None:
+    """Opacities near 1: most pairs hit the 0.999 clamp (no gradient through sigma or the opacity there) and most
+    pixels terminate after a few layers. The float64 gradients still equal torch_ref's."""
+    numba_backend, torch_ref = backends
+    scene = make_random_scene(9, 600, 40, 32, dtype=torch.float64, sh_degree=1, max_opacity=0.95)
+    scene.opacities.copy_(0.9999 + 0.0001 * torch.rand(600, generator=torch.Generator().manual_seed(9),
+                                                        dtype=torch.float64))  # fmt: skip
+    scene.scales.mul_(30.0)  # wide footprints: sigma < 1e-3 near most centres, where alpha is clamped at 0.999
+    got, got_grads = _render_and_backward(numba_backend, scene, 9)
+    ref, ref_grads = _render_and_backward(torch_ref, scene, 9)
+    assert float(ref.alpha.detach().mean()) > 0.99  # opaque: pixels finish after a few layers
+    for name, a, b in zip(GRAD_NAMES, got_grads, ref_grads, strict=True):
+        torch.testing.assert_close(a, b, atol=FLOAT64_TOL * max(1.0, float(b.abs().max())), rtol=0, msg=name)
+
+
 def test_pair_log_grows_when_a_render_has_more_pairs(backends, monkeypatch) -> None:
     """The pair log starts with room for 8 pairs per entry (or the last render's count): a render with far more,
     large Gaussians over the whole image, runs again with room for all, and its gradients are still torch_ref's."""
