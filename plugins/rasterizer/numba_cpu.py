@@ -7,7 +7,8 @@ it). A render whose inputs require gradients (training) runs `torch_ref`'s rende
 compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
 compositing (`framework.splat.compiled_composite`). The SH colours keep torch_ref's autograd code, and means2d is
 still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
-`torch_ref`'s. Inputs on another device, or in half precision, run `torch_ref` itself.
+`torch_ref`'s. Inputs on another device run `torch_ref` itself; half-precision inputs are rendered in float32, as
+`torch_ref` does, through the same compiled steps.
 
 An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
 (`framework.rig.compiled_skinning`, for LBS deformers with baked weights), so the whole CPU frame but F_a and the
@@ -91,7 +92,8 @@ def _numba_unavailable() -> str | None:
 
 @register("rasterizer", "numba", requires=_numba_unavailable)
 class NumbaRasterizer(Rasterizer):
-    """torch_ref's contract; forward-only renders as compiled loops, gradient renders with compiled compositing."""
+    """torch_ref's contract; forward-only renders compiled whole, gradient renders with compiled projection and
+    compositing (their backward passes compiled too)."""
 
     #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`)
     compiled_inference = True
