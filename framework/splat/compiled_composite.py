@@ -9,8 +9,8 @@ Everything runs in float64 inside, so float32 renders and gradients are at least
 ones. 10k random Gaussians at 128²: 11 ms forward and 4 ms backward for the compositing, 32 ms for the whole render
 forward and backward against torch_ref's 73 ms (one-off timing, 2-core VM).
 
-The projection and the colours stay in PyTorch (autograd carries these gradients on to the Gaussians, and
-densification reads `means2d.grad` as before); only the compositing between them is replaced.
+The colours stay in PyTorch and the projection has its own Function (`framework.splat.compiled_projection`); autograd
+carries the gradients between them, and densification reads `means2d.grad` as before.
 """
 
 from __future__ import annotations
@@ -56,16 +56,18 @@ class CompiledComposite(torch.autograd.Function):
         order = np.arange(M)
         base_row = cam.to(torch.int64).numpy() * height  # [M] first stacked row of each entry's image
         slots = num_cameras * height * (width + 1)  # one per pixel, and a row-end marker per row
-        capacity = max(_capacity_hint[0], 8 * M)
+        # no gradient asked (a half-precision render, say): no pair log to keep
+        capacity = max(_capacity_hint[0], 8 * M) if any(ctx.needs_input_grad[:5]) else 0
         while True:
             T = np.ones(slots)
             acc = np.zeros((slots, 4))  # [slots, 4] sums of T * alpha * (r, g, b, z)
             log = (np.empty(capacity, dtype=np.int32), np.empty(capacity, dtype=np.int32), np.empty(capacity))
             count = compiled_cpu.accumulate(order, base_row, *entries, width, height, T, acc, *log)
-            if count <= capacity:
+            if count <= capacity or capacity == 0:
                 break
             capacity = count + count // 4  # rare: the first render, or a jump in the number of pairs
-        _capacity_hint[0] = count + count // 4
+        if capacity:
+            _capacity_hint[0] = count + count // 4
         log = tuple(a[:count] for a in log)  # [P] the pairs added, in order
         ctx.entries, ctx.order, ctx.base_row, ctx.T, ctx.log = entries[:5], order, base_row, T, log
         ctx.shape = (num_cameras * height, width)

@@ -1,4 +1,4 @@
-"""The rasterizer contract's forward pass as compiled loops (numba): projection and front-to-back compositing.
+"""The rasterizer contract as compiled loops (numba): projection and front-to-back compositing, and their backward.
 
 Why: at the resolutions a CPU renders in real time (128-512 px) the eager `torch_ref` frame is mostly per-operation
 overhead. Its projection alone is about 300 small tensor operations and its compositor about a thousand, each a few
@@ -8,8 +8,9 @@ and no per-pair buffers: the entries are visited in depth order, and each visit 
 sums of the pixels its footprint covers. That is front-to-back compositing pixel by pixel, as the contract
 (`framework.interfaces.rasterizer`) defines it, because a pixel sees its entries in the same order either way.
 
-Forward only: `plugins/rasterizer/numba_cpu.py` hands every render that needs gradients to `torch_ref`, so there is one
-implementation of the backward. Everything is computed in float64 and the results are cast to the caller's dtype.
+Training renders use the same loops with hand-written backward passes (`project_backward`, `accumulate_backward`;
+the autograd Functions are `framework.splat.compiled_projection` and `framework.splat.compiled_composite`).
+Everything is computed in float64 and the results are cast to the caller's dtype.
 A float32 render therefore differs from `torch_ref`'s float32 render by float32 rounding, and both differ from a float64
 render by about the same amount; `tests/test_numba_rasterizer.py` checks that against `torch_ref` in float64. The pairs
 each entry visits are the ones `framework.splat.pairs.enumerate_pairs` lists: the rows of its screen box, and in each
@@ -86,6 +87,27 @@ def _unit_rotation(quats, n, rot):
 
 
 @njit(cache=True, nogil=True)
+def _screen_covariance(Rc, rot, scales, n, uc, vc, a0, a1, eps2d, wm, t0, t1):
+    """The dilated 2D covariance of Gaussian n: writes W R S into wm [3, 3] (row i: camera axis i) and the rows of
+    T = J W R S into t0, t1 [3] (J at the clamped uc, vc; a0 = fx / z, a1 = fy / z); returns (cxx, cxy, cyy, k0, k1,
+    k2, det) with k = T0 x T1 and det = |k|^2 + eps2d (cxx + cyy - eps2d), Lagrange's identity, as the projection."""
+    for j in range(3):
+        s = scales[n, j]
+        for i in range(3):
+            wm[i, j] = (Rc[i, 0] * rot[0, j] + Rc[i, 1] * rot[1, j] + Rc[i, 2] * rot[2, j]) * s
+        t0[j] = (wm[0, j] - uc * wm[2, j]) * a0
+        t1[j] = (wm[1, j] - vc * wm[2, j]) * a1
+    cxx = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + eps2d
+    cxy = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
+    cyy = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + eps2d
+    k0 = t0[1] * t1[2] - t0[2] * t1[1]
+    k1 = t0[2] * t1[0] - t0[0] * t1[2]
+    k2 = t0[0] * t1[1] - t0[1] * t1[0]
+    det = k0 * k0 + k1 * k1 + k2 * k2 + eps2d * (cxx + cyy - eps2d)
+    return cxx, cxy, cyy, k0, k1, k2, det
+
+
+@njit(cache=True, nogil=True)
 def project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far, eps2d,
             means2d, conics, depths, half, radii, valid, cov2d):  # fmt: skip
     """EWA projection of N Gaussians into C cameras, the rules of `framework.splat.projection.project_gaussians`.
@@ -95,9 +117,8 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
     radii [C, N] (0 where culled), valid [C, N], cov2d [C, N, 3] (the dilated Sigma2d's xx, xy, yy)."""
     C, N = K.shape[0], means.shape[0]
     extend = np.empty(N)
-    rs = np.empty((3, 3))  # scratch, reused per entry (an allocation per entry costs more than its arithmetic)
-    t0 = np.empty(3)
-    t1 = np.empty(3)
+    rs, wm = np.empty((3, 3)), np.empty((3, 3))  # scratch, reused per entry (an allocation each costs more than
+    t0, t1 = np.empty(3), np.empty(3)  # its arithmetic)
     for n in range(N):
         extend[n] = min(math.sqrt(2.0 * math.log(max(opacities[n] / ALPHA_MIN, 1.0))), EXTEND_MAX)
     for c in range(C):
@@ -111,19 +132,8 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
             mx, my = cx + fx * u, cy + fy * v
             _unit_rotation(quats, n, rs)  # then times the scales, column by column below
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
-            for j in range(3):  # column j of W R S, then the Jacobian's two rows applied to it
-                s = scales[n, j]
-                w0 = (Rc[0, 0] * rs[0, j] + Rc[0, 1] * rs[1, j] + Rc[0, 2] * rs[2, j]) * s
-                w1 = (Rc[1, 0] * rs[0, j] + Rc[1, 1] * rs[1, j] + Rc[1, 2] * rs[2, j]) * s
-                w2 = (Rc[2, 0] * rs[0, j] + Rc[2, 1] * rs[1, j] + Rc[2, 2] * rs[2, j]) * s
-                t0[j] = (w0 - uc * w2) * (fx * rz)
-                t1[j] = (w1 - vc * w2) * (fy * rz)
-            cxx = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + eps2d
-            cxy = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
-            cyy = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + eps2d
-            cross_sq = ((t0[1] * t1[2] - t0[2] * t1[1]) ** 2 + (t0[2] * t1[0] - t0[0] * t1[2]) ** 2
-                        + (t0[0] * t1[1] - t0[1] * t1[0]) ** 2)  # fmt: skip
-            det = cross_sq + eps2d * (cxx + cyy - eps2d)  # Lagrange's identity, as the projection
+            cxx, cxy, cyy, _, _, _, det = _screen_covariance(Rc, rs, scales, n, uc, vc, fx * rz, fy * rz, eps2d, wm,
+                                                             t0, t1)  # fmt: skip
             ok_det = det > 0
             inv = 1.0 / det if ok_det else 1.0
             means2d[c, n, 0], means2d[c, n, 1] = mx, my
@@ -172,19 +182,7 @@ def project_backward(means, quats, scales, K, world_to_cam, width, height, eps2d
             w, qx, qy, qz, qn, unit = _unit_rotation(quats, n, rot)
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
             a0, a1 = fx * rz, fy * rz
-            for j in range(3):
-                s = scales[n, j]
-                for i in range(3):
-                    wm[i, j] = (Rc[i, 0] * rot[0, j] + Rc[i, 1] * rot[1, j] + Rc[i, 2] * rot[2, j]) * s
-                t0[j] = (wm[0, j] - uc * wm[2, j]) * a0
-                t1[j] = (wm[1, j] - vc * wm[2, j]) * a1
-            cxx = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + eps2d
-            cxy = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
-            cyy = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + eps2d
-            k0 = t0[1] * t1[2] - t0[2] * t1[1]  # T0 x T1
-            k1 = t0[2] * t1[0] - t0[0] * t1[2]
-            k2 = t0[0] * t1[1] - t0[1] * t1[0]
-            det = k0 * k0 + k1 * k1 + k2 * k2 + eps2d * (cxx + cyy - eps2d)
+            cxx, cxy, cyy, k0, k1, k2, det = _screen_covariance(Rc, rot, scales, n, uc, vc, a0, a1, eps2d, wm, t0, t1)
             inv = 1.0 / det
             # conic = (cyy, -cxy, cxx) / det
             ga, gb, gc = g_conics[c, n, 0], g_conics[c, n, 1], g_conics[c, n, 2]
