@@ -180,13 +180,17 @@ def test_weight_std_is_not_computed_when_its_loss_weight_is_zero(tmp_path, monke
     for experiment, wanted in (("paper_full", True), ("no_weight_std_loss", False)):
         module = _tiny_module(experiment)
         deformer = module.avatar.deformer
-        sampled = []
-        original = deformer.weights
-        monkeypatch.setattr(deformer, "weights", lambda p, _o=original, _s=sampled: _s.append(p.shape[:-1]) or _o(p))
+        sampled, smoothed = [], []  # points given to the field lookup alone / to the lookup with L_w
+        for name, calls in (("weights", sampled), ("smooth_weights", smoothed)):
+            original = getattr(deformer, name)
+            monkeypatch.setattr(deformer, name, lambda p, _o=original, _s=calls: _s.append(p.shape[:-1]) or _o(p))
         out = module.render_batch(_batch(), step=0)
         n = module.avatar.gaussians.num
         assert ("weight_std" in out.aux) is wanted, experiment
-        assert sampled == ([(n, 7)] if wanted else [(n,)]), experiment
+        if wanted:  # the compiled path (the CPU default) looks the seven points up without calling `weights`
+            assert smoothed == [(n, 7)] and sampled in ([], [(n, 7)]), experiment
+        else:
+            assert smoothed == [] and sampled == [(n,)], experiment
 
 
 def test_paper_forms_sweep_lists_paper_full_and_each_form():

@@ -63,6 +63,7 @@ VARIANTS: dict[str, list[str]] = {
     "compile": ["rasterizer=torch_ref", "rasterizer.compile=true"],
     "data_worker": ["data_loader.num_workers=1"],
     "torch_ref": ["rasterizer=torch_ref"],
+    "torch_weights": ["deformer.compiled_weights=false"],
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "polar_float64"]
 
@@ -224,8 +225,9 @@ class Instrument:
         c.hook_module("polar + LBS (+ SH rotation) (deformer)", avatar.deformer)
         if hasattr(avatar, "_view_colour"):
             avatar._view_colour = c.wrap("view colour (SH at R^T d, one camera)", avatar._view_colour)
-        if hasattr(avatar.deformer, "weights"):
-            avatar.deformer.weights = c.wrap("weight lookup + F_dw", avatar.deformer.weights)
+        for method in ("weights", "smooth_weights"):  # the centres alone; the centres, the L_w points and L_w
+            if hasattr(avatar.deformer, method):
+                setattr(avatar.deformer, method, c.wrap("weight lookup + F_dw", getattr(avatar.deformer, method)))
         c.hook_module("avatar glue (parameters, activations)", avatar)
         raw_render = avatar.rasterizer.render
 

@@ -36,6 +36,7 @@ class LBSDeformerBase(Deformer):
         use_cache: bool = True,
         polar_dtype: str = "float32",
         centres: str = "blended",
+        compiled_weights: bool = True,
     ) -> None:
         super().__init__()
         if stretch not in STRETCH_MODES:
@@ -47,6 +48,7 @@ class LBSDeformerBase(Deformer):
         self.polar_dtype = POLAR_DTYPES[polar_dtype]
         self.grid_resolution, self.stretch, self.centres = grid_resolution, stretch, centres
         self.weight_std_enabled, self.use_cache = weight_std, use_cache
+        self.compiled_weights = compiled_weights
         self.report_weight_std = weight_std
         self.field: WeightField | None = None
         self.unfolded: WeightField | None = None  # frozen joints: the field over the full skeleton, for L_w only
@@ -91,6 +93,16 @@ class LBSDeformerBase(Deformer):
         """The weights the model uses from the grid's [..., J] at `points` (`lbs_residual` adds F_dw here)."""
         return grid_weights
 
+    def residual(self, points: Tensor) -> tuple[str, Tensor | None]:
+        """How `refine` changes the grid weights at `points` [..., 3]: (combination, F_dw's residual [..., J]), one of
+        the combinations of `framework.rig.compiled_weights.COMBINE_MODES`; ("none", None) without F_dw."""
+        return "none", None
+
+    @property
+    def residual_eps(self) -> float:
+        """The floor added to the grid weights before their log (the softmax combination)."""
+        return 0.0
+
     @property
     def refines(self) -> bool:
         """Whether `refine` changes the grid weights now (F_dw switched on)."""
@@ -99,6 +111,11 @@ class LBSDeformerBase(Deformer):
     def smooth_weights(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """points [N, 7, 3] (the centre, then the six L_w points) -> (weights [N, J] at the centres, L_w [N])."""
         if self.unfolded is None:
+            if self._weights_compiled(points):
+                from framework.rig.compiled_weights import smooth_weights_compiled  # imports numba: first use only
+
+                combine, dw = self.residual(points)  # dw [N, 7, J] or None
+                return smooth_weights_compiled(self.field, points, dw, combine, self.residual_eps)
             w7 = self.weights(points)  # [N, 7, J]
             return w7[:, 0], weight_std(w7[:, 1:])
         full7 = self.unfolded.sample(points)  # [N, 7, J_full]: one lookup for all seven points
@@ -112,6 +129,16 @@ class LBSDeformerBase(Deformer):
         folded_groups = weight_std(full7[:, 1:, self.fold_members]) - weight_std(grid7[:, 1:, self.fold_groups])
         return w7[:, 0], weight_std(w7[:, 1:]) + folded_groups
 
+    def _weights_compiled(self, points: Tensor) -> bool:
+        """Whether `smooth_weights` takes the compiled loops: switched on, CPU, float32/64, a partition-of-unity grid
+        (the only kind `framework.rig.weight_field` builds from a body; other grids are clamped and renormalised)."""
+        return (
+            self.compiled_weights
+            and points.device.type == "cpu"
+            and points.dtype in (torch.float32, torch.float64)
+            and self.field.partition_of_unity
+        )
+
     def _skins_compiled(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
         """Whether this call takes the compiled skinning: switched on, baked weights, CPU, no gradient asked."""
         if not self.compiled_inference or gaussians.skin_weights is None or w.device.type != "cpu":
@@ -121,8 +148,14 @@ class LBSDeformerBase(Deformer):
 
     @torch.no_grad()
     def bake(self, gaussians: Gaussians) -> Tensor:
-        """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference."""
-        return self.weights(gaussians.means).detach().clone()
+        """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference.
+
+        When training computes them compiled, so does the bake (the centre repeated as all seven points), so a baked
+        model deforms exactly as the trained one did, not within float32 rounding of it."""
+        means = gaussians.means
+        if self.field is not None and self.unfolded is None and self._weights_compiled(means):
+            return self.smooth_weights(means.unsqueeze(-2).expand(-1, 7, -1))[0].detach().clone()
+        return self.weights(means).detach().clone()
 
     def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None, defer_sh: bool = False) -> DeformOutput:
         if bone_transforms is None:

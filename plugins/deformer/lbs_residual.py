@@ -34,7 +34,7 @@ class LBSResidualDeformer(LBSDeformerBase):
             raise ValueError(f"deformer 'lbs_residual': residual must be one of {self.RESIDUALS}, got '{residual}'.")
         self.enabled = True
         self.hidden, self.num_layers, self.num_freqs, self.eps = hidden, layers, num_freqs, eps
-        self.residual = residual
+        self.combine = residual
         self.mlp: nn.Sequential | None = None
 
     def bind(self, body: object | None, bounds: Tensor | None) -> None:
@@ -52,11 +52,20 @@ class LBSResidualDeformer(LBSDeformerBase):
     def refines(self) -> bool:
         return self.enabled and self.mlp is not None
 
-    def refine(self, points: Tensor, w: Tensor) -> Tensor:
+    def residual(self, points: Tensor) -> tuple[str, Tensor | None]:
         if not self.refines:
-            return w
+            return "none", None
         x = normalize_to_bounds(points, self.field.bounds)
-        dw = self.mlp(posenc(x, self.num_freqs).to(w.dtype))  # [..., J]
-        if self.residual == "additive":
+        return self.combine, self.mlp(posenc(x, self.num_freqs).to(points.dtype))  # [..., J]
+
+    @property
+    def residual_eps(self) -> float:
+        return self.eps
+
+    def refine(self, points: Tensor, w: Tensor) -> Tensor:
+        combine, dw = self.residual(points)
+        if dw is None:
+            return w
+        if combine == "additive":
             return w + dw
         return torch.softmax(torch.log(w + self.eps) + dw, dim=-1)
