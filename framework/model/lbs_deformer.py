@@ -25,7 +25,9 @@ class LBSDeformerBase(Deformer):
     baked weights (nothing to smooth). On a body with frozen joints (`BodyModel.unfolded_skinning`) it is measured
     over the whole skeleton, as without freezing: the six points' weights from a second field over every joint of the
     full skeleton (the LBS field is its folded sums), plus the change F_dw makes on the kept joints. `centres` chooses
-    how centres move (`framework.rig.lbs.apply_lbs`).
+    how centres move (`framework.rig.lbs.apply_lbs`). `compiled_weights`: on the CPU, the seven points' lookup, F_dw's
+    combination and L_w run as compiled loops (`framework.rig.compiled_weights`; the same values, to float32
+    rounding), and `bake` stores what they give.
     """
 
     def __init__(

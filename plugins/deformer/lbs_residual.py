@@ -42,7 +42,9 @@ class LBSResidualDeformer(LBSDeformerBase):
         dims = [posenc_dim(self.num_freqs)] + [self.hidden] * (self.num_layers - 1)
         mods: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:], strict=True):
-            mods += [nn.Linear(a, b), nn.ReLU()]
+            # in place, as F_a's trunk: the activation overwrites the product it follows (whose backward does not read
+            # it), so no [7N, hidden] temporary is allocated per layer
+            mods += [nn.Linear(a, b), nn.ReLU(inplace=True)]
         last = nn.Linear(dims[-1], self.field.num_joints)
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
