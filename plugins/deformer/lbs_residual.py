@@ -58,7 +58,11 @@ class LBSResidualDeformer(LBSDeformerBase):
         if not self.refines:
             return "none", None
         x = normalize_to_bounds(points, self.field.bounds)
-        return self.combine, self.mlp(posenc(x, self.num_freqs).to(points.dtype))  # [..., J]
+        enc = posenc(x, self.num_freqs).to(points.dtype)  # [..., D]
+        # through the MLP as one [M, D] matrix: on a [N, 7, D] input torch's linear backward copies every activation
+        # and gradient once more (1.4x the time of the same MLP on the flat rows, measured at 56k points)
+        dw = self.mlp(enc.reshape(-1, enc.shape[-1]))  # [M, J]
+        return self.combine, dw.reshape(*enc.shape[:-1], dw.shape[-1])  # [..., J]
 
     @property
     def residual_eps(self) -> float:
