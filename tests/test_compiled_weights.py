@@ -11,7 +11,7 @@ from torch import Tensor
 
 from framework.model.gaussian_init import from_body_surface
 from framework.registry import REGISTRIES
-from framework.rig import compiled_weights
+from framework.rig import compiled_threads
 from framework.rig.compiled_weights import smooth_weights_compiled
 from framework.rig.lbs import six_points, weight_std
 from framework.rig.weight_field import WeightField
@@ -72,7 +72,7 @@ def run(path, field, pts, dw, combine, grads):
 
 @pytest.mark.parametrize("combine", ["none", "softmax", "additive"])
 def test_values_and_gradients_equal_torch_float64(combine, monkeypatch):
-    monkeypatch.setattr(compiled_weights, "_MIN_CHUNK", 8)  # several chunks on worker threads
+    monkeypatch.setattr(compiled_threads, "MIN_CHUNK", 8)  # several chunks on worker threads
     monkeypatch.setattr(torch, "get_num_threads", lambda: 3)
     field = field_with_rigid_block()
     pts, dw = scene(60)
@@ -202,7 +202,7 @@ def test_a_forked_child_does_not_wait_on_the_parents_threads(monkeypatch):
     """A data-loader worker forked after training started inherits the thread pool without its threads."""
     import multiprocessing
 
-    monkeypatch.setattr(compiled_weights, "_MIN_CHUNK", 8)
+    monkeypatch.setattr(compiled_threads, "MIN_CHUNK", 8)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     pts, dw = scene(40)
     expected = smooth_weights_compiled(field_with_rigid_block(), pts, dw, "softmax", EPS)[1]  # the pool runs here

@@ -27,7 +27,10 @@ class LBSDeformerBase(Deformer):
     full skeleton (the LBS field is its folded sums), plus the change F_dw makes on the kept joints. `centres` chooses
     how centres move (`framework.rig.lbs.apply_lbs`). `compiled_weights`: on the CPU, the seven points' lookup, F_dw's
     combination and L_w run as compiled loops (`framework.rig.compiled_weights`; the same values, to float32
-    rounding), and `bake` stores what they give.
+    rounding), and `bake` stores what they give. `compiled_skinning`: in training on the CPU, everything of the LBS
+    after the blend's matrix product (the polar decomposition, the quaternions, centres and stretch) runs as compiled
+    loops with a hand-written backward (`framework.rig.compiled_skinning.lbs_with_sh_frames_trainable`; float64
+    inside, so the polar iteration is float64 whatever `polar_dtype` says).
     """
 
     def __init__(
@@ -39,6 +42,7 @@ class LBSDeformerBase(Deformer):
         polar_dtype: str = "float32",
         centres: str = "blended",
         compiled_weights: bool = True,
+        compiled_skinning: bool = True,
     ) -> None:
         super().__init__()
         if stretch not in STRETCH_MODES:
@@ -50,7 +54,7 @@ class LBSDeformerBase(Deformer):
         self.polar_dtype = POLAR_DTYPES[polar_dtype]
         self.grid_resolution, self.stretch, self.centres = grid_resolution, stretch, centres
         self.weight_std_enabled, self.use_cache = weight_std, use_cache
-        self.compiled_weights = compiled_weights
+        self.compiled_weights, self.compiled_skinning = compiled_weights, compiled_skinning
         self.report_weight_std = weight_std
         self.field: WeightField | None = None
         self.unfolded: WeightField | None = None  # frozen joints: the field over the full skeleton, for L_w only
@@ -148,6 +152,16 @@ class LBSDeformerBase(Deformer):
         tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
+    def _skins_compiled_with_grad(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
+        """Whether this call takes the compiled skinning with gradients (training): switched on, CPU, float32/64."""
+        tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
+        return (
+            self.compiled_skinning
+            and all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
+            and torch.is_grad_enabled()
+            and any(t.requires_grad for t in tensors)
+        )
+
     @torch.no_grad()
     def bake(self, gaussians: Gaussians) -> Tensor:
         """The weights this deformer uses for each Gaussian, [N, J], to store as `skin_weights` for inference.
@@ -176,6 +190,10 @@ class LBSDeformerBase(Deformer):
             from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled  # imports numba: first use only
 
             posed, R = lbs_with_sh_frames_compiled(gaussians, w, bone_transforms, self.stretch, self.centres)
+        elif self._skins_compiled_with_grad(gaussians, w, bone_transforms):
+            from framework.rig.compiled_skinning import lbs_with_sh_frames_trainable  # imports numba: first use only
+
+            posed, R = lbs_with_sh_frames_trainable(gaussians, w, bone_transforms, self.stretch, self.centres)
         else:
             posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
         if posed.sh.shape[1] == 1:  # degree 0 does not turn

@@ -1,4 +1,5 @@
-"""`framework.rig.lbs.lbs_with_sh_frames` for baked weights without gradients, as one compiled loop (numba).
+"""`framework.rig.lbs.lbs_with_sh_frames` as compiled loops (numba): for baked weights without gradients (`skin`,
+inference), and with a hand-written backward for training (`lbs_with_sh_frames_trainable`).
 
 Why: once the rasterizer runs compiled (`rasterizer=numba`), the skinning is the largest part of a CPU novel-pose
 frame. On the walking avatars at 128² it took 3.8-5.8 ms. About half of that is fixed: some 600 small tensor
@@ -17,6 +18,15 @@ The same rules as `framework.rig.lbs` and `framework.rig.polar`, in float64:
 The torch path iterates the polar decomposition in float32 by default, and all of its matrices until the slowest has
 converged. Its results agree with these to float32 rounding (`tests/test_compiled_skinning.py` checks that against the
 torch path in float64).
+
+Training: the blend stays torch's matrix product (`blended_affine`, whose backward reaches the weights and the bone
+transforms); `skin_affine_forward` poses each Gaussian from its blended A and t as above, and `skin_affine_backward`
+carries the outputs' gradients back through the stretch, the quaternion product, R's quaternion (the row the forward
+took), the centres and the polar decomposition (the closed form of `framework.rig.polar`, per matrix) to A, t, the
+means and the quaternions. In a stage-2 step the torch path ran some 300 small operations each way over 8k Gaussians:
+22 ms forward+backward against 9 ms for these loops on two threads (2-core VM, medians).
+`tests/test_compiled_skinning_grad.py` checks values and gradients against the torch path in float64 and by finite
+differences.
 """
 
 from __future__ import annotations
@@ -24,9 +34,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 from numba import njit
 
-from framework.guards import LBS_MIN_STRETCH, NORM_EPS, POLAR_SINGULAR_TOL
+from framework.guards import LBS_MIN_STRETCH, NORM_EPS, POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
+from framework.rig.compiled_threads import run_chunked
 
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = 1e-13  # float64, as framework.rig.polar
@@ -91,8 +103,9 @@ def _polar_rotation(A, R, X, C) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _rotmat_to_quat(R, q) -> None:
-    """q (wxyz, w >= 0) of the rotation R, from the row of 4 q q^T with the largest diagonal entry."""
+def _rotmat_to_quat(R, q) -> tuple[int, float]:
+    """q (wxyz, w >= 0) of the rotation R, from the row of 4 q q^T with the largest diagonal entry. Returns the row
+    taken and the signed factor s with q = s v (v that row, s = +-1 / |v|), which the backward needs."""
     v0 = 1.0 + R[0, 0] + R[1, 1] + R[2, 2]
     v1 = 1.0 + R[0, 0] - R[1, 1] - R[2, 2]
     v2 = 1.0 - R[0, 0] + R[1, 1] - R[2, 2]
@@ -114,6 +127,67 @@ def _rotmat_to_quat(R, q) -> None:
     if a * s < 0:
         s = -s
     q[0], q[1], q[2], q[3] = a * s, b * s, c * s, d * s
+    return best, s
+
+
+@njit(cache=True, nogil=True)
+def _unit_quat(quats, n) -> tuple[float, float, float, float, float]:
+    """(w, x, y, z, |q|) of quats[n] normalised; one below NORM_EPS is the identity (framework.geometry's rule)."""
+    w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
+    qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, NORM_EPS * NORM_EPS))
+    if qn > NORM_EPS:
+        return w / qn, qx / qn, qy / qn, qz / qn, qn
+    return 1.0, 0.0, 0.0, 0.0, qn
+
+
+@njit(cache=True, nogil=True)
+def _axes(w, qx, qy, qz, Q) -> None:
+    """Q = the rotation of the unit quaternion wxyz: its columns are the Gaussian's axes a_l."""
+    Q[0, 0], Q[0, 1], Q[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
+    Q[1, 0], Q[1, 1], Q[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
+    Q[2, 0], Q[2, 1], Q[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
+
+
+@njit(cache=True, nogil=True)
+def _rt_a(R, A, M) -> None:
+    """M = R^T A."""
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = R[0, i] * A[0, j] + R[1, i] * A[1, j] + R[2, i] * A[2, j]
+
+
+@njit(cache=True, nogil=True)
+def _pose_one(n, A, tv, means, quats, log_scales, blended_centres, diag_stretch, R, Q, X, C, qR,
+              out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
+    """Pose Gaussian n with its blended affine A [3, 3] and translation tv [3]; R, Q, X, C [3, 3], qR [4]: work
+    space (R and qR hold its rotation and that rotation's quaternion afterwards)."""
+    _polar_rotation(A, R, X, C)
+    _rotmat_to_quat(R, qR)
+    x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
+    m = A if blended_centres else R
+    for i in range(3):
+        out_means[n, i] = m[i, 0] * x0 + m[i, 1] * x1 + m[i, 2] * x2 + tv[i]
+    w, qx, qy, qz, _ = _unit_quat(quats, n)
+    aw, ax, ay, az = qR[0], qR[1], qR[2], qR[3]
+    out_quats[n, 0] = aw * w - ax * qx - ay * qy - az * qz
+    out_quats[n, 1] = aw * qx + ax * w + ay * qz - az * qy
+    out_quats[n, 2] = aw * qy - ax * qz + ay * w + az * qx
+    out_quats[n, 3] = aw * qz + ax * qy - ay * qx + az * w
+    for i in range(3):
+        for j in range(3):
+            out_rotations[n, i, j] = R[i, j]
+    if not diag_stretch:
+        for l in range(3):  # noqa: E741
+            out_log_scales[n, l] = log_scales[n, l]
+        return
+    # the Gaussian's axes a_l (columns of its rotation) and k_l = a_l^T (R^T A) a_l
+    _axes(w, qx, qy, qz, Q)
+    _rt_a(R, A, X)
+    for l in range(3):  # noqa: E741
+        k = 0.0
+        for i in range(3):
+            k += Q[i, l] * (X[i, 0] * Q[0, l] + X[i, 1] * Q[1, l] + X[i, 2] * Q[2, l])
+        out_log_scales[n, l] = log_scales[n, l] + math.log(max(k, LBS_MIN_STRETCH))
 
 
 @njit(cache=True, nogil=True)
@@ -124,12 +198,8 @@ def skin(weights, transforms, means, quats, log_scales, blended_centres, diag_st
     rotations out_rotations [N, 3, 3] (the SH frames)."""
     N, J = weights.shape
     P = np.empty(12)
-    A = np.empty((3, 3))
-    R = np.empty((3, 3))
-    Q = np.empty((3, 3))
-    X = np.empty((3, 3))
-    C = np.empty((3, 3))
-    qR = np.empty(4)
+    A, R, Q, X, C = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    tv, qR = np.empty(3), np.empty(4)
     for n in range(N):
         P[:] = 0.0
         for k in range(J):
@@ -140,49 +210,228 @@ def skin(weights, transforms, means, quats, log_scales, blended_centres, diag_st
         for i in range(3):
             for j in range(3):
                 A[i, j] = P[4 * i + j]
-        _polar_rotation(A, R, X, C)
-        _rotmat_to_quat(R, qR)
-        x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
-        for i in range(3):
-            m = A if blended_centres else R
-            out_means[n, i] = m[i, 0] * x0 + m[i, 1] * x1 + m[i, 2] * x2 + P[4 * i + 3]
-        w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
-        qn = math.sqrt(max(w * w + qx * qx + qy * qy + qz * qz, NORM_EPS * NORM_EPS))
-        if qn > NORM_EPS:
-            w, qx, qy, qz = w / qn, qx / qn, qy / qn, qz / qn
-        else:
-            w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-        aw, ax, ay, az = qR[0], qR[1], qR[2], qR[3]
-        out_quats[n, 0] = aw * w - ax * qx - ay * qy - az * qz
-        out_quats[n, 1] = aw * qx + ax * w + ay * qz - az * qy
-        out_quats[n, 2] = aw * qy - ax * qz + ay * w + az * qx
-        out_quats[n, 3] = aw * qz + ax * qy - ay * qx + az * w
+            tv[i] = P[4 * i + 3]
+        _pose_one(n, A, tv, means, quats, log_scales, blended_centres, diag_stretch, R, Q, X, C, qR,
+                  out_means, out_quats, out_log_scales, out_rotations)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def skin_affine_forward(A9, t3, means, quats, log_scales, blended_centres, diag_stretch, start, stop,
+                        out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
+    """`skin` for Gaussians [start, stop) whose blend is already done: A9 [9, N] and t3 [3, N] are the blended
+    affine parts, entry-major (`framework.rig.lbs.blended_affine`)."""
+    A, R, Q, X, C = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    tv, qR = np.empty(3), np.empty(4)
+    for n in range(start, stop):
         for i in range(3):
             for j in range(3):
-                out_rotations[n, i, j] = R[i, j]
-        if not diag_stretch:
-            for l in range(3):  # noqa: E741
-                out_log_scales[n, l] = log_scales[n, l]
-            continue
-        # the Gaussian's axes a_l (columns of its rotation) and k_l = a_l^T (R^T A) a_l
-        Q[0, 0], Q[0, 1], Q[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
-        Q[1, 0], Q[1, 1], Q[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
-        Q[2, 0], Q[2, 1], Q[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
-        for l in range(3):  # noqa: E741
-            k = 0.0
+                A[i, j] = A9[3 * i + j, n]
+            tv[i] = t3[i, n]
+        _pose_one(n, A, tv, means, quats, log_scales, blended_centres, diag_stretch, R, Q, X, C, qR,
+                  out_means, out_quats, out_log_scales, out_rotations)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _polar_backward(A, R, G, out) -> None:
+    """out = dL/dA of R = polar(A) for dL/dR = G (`framework.rig.polar._PolarRotation.backward`, per matrix): with
+    S = sym(R^T A) and B = tr(S) I - S, h solves (B B + d^2 I) h = B vee(skew(R^T G)) (Tikhonov-damped), and
+    dL/dA = R skew(h); entries that are not finite are 0."""
+    S = np.empty((3, 3))
+    _rt_a(R, A, S)
+    W = np.empty((3, 3))
+    _rt_a(R, G, W)
+    g0, g1, g2 = W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]
+    tr = S[0, 0] + S[1, 1] + S[2, 2]
+    B = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = (tr if i == j else 0.0) - 0.5 * (S[i, j] + S[j, i])
+    d2 = (POLAR_TIKHONOV * abs(tr)) ** 2 + POLAR_DAMPING_FLOOR
+    M = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = B[i, 0] * B[0, j] + B[i, 1] * B[1, j] + B[i, 2] * B[2, j] + (d2 if i == j else 0.0)
+    b0 = B[0, 0] * g0 + B[0, 1] * g1 + B[0, 2] * g2
+    b1 = B[1, 0] * g0 + B[1, 1] * g1 + B[1, 2] * g2
+    b2 = B[2, 0] * g0 + B[2, 1] * g1 + B[2, 2] * g2
+    # M^-1 b by the adjugate of the symmetric M (framework.rig.polar._solve_sym3)
+    m00, m01, m02, m11, m12, m22 = M[0, 0], M[0, 1], M[0, 2], M[1, 1], M[1, 2], M[2, 2]
+    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
+    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    h0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+    h1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
+    h2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
+    for i in range(3):  # R skew(h), skew(h) = [[0, -h2, h1], [h2, 0, -h0], [-h1, h0, 0]]
+        e0 = R[i, 1] * h2 - R[i, 2] * h1
+        e1 = R[i, 2] * h0 - R[i, 0] * h2
+        e2 = R[i, 0] * h1 - R[i, 1] * h0
+        out[i, 0] = e0 if math.isfinite(e0) else 0.0
+        out[i, 1] = e1 if math.isfinite(e1) else 0.0
+        out[i, 2] = e2 if math.isfinite(e2) else 0.0
+
+
+@njit(cache=True, nogil=True)
+def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stretch, g_means, g_quats,
+                         g_log_scales, g_rotations, start, stop, grad_A9, grad_means, grad_quats) -> None:  # fmt: skip
+    """The gradients of `skin_affine_forward`'s outputs (g_*) carried back to A9 [9, N], means [N, 3] and quats
+    [N, 4], for Gaussians [start, stop); `rotations` [N, 3, 3] are the forward's R. (The translation's gradient is
+    g_means itself, the log-scales' is g_log_scales: the wrapper passes those on.)"""
+    A, R, Q, M = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    gA, gR, gQ, gM, polar = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    qR = np.empty(4)
+    for n in range(start, stop):
+        for i in range(3):
+            for j in range(3):
+                A[i, j] = A9[3 * i + j, n]
+                R[i, j] = rotations[n, i, j]
+                gR[i, j] = g_rotations[n, i, j]
+                gA[i, j] = 0.0
+        best, s = _rotmat_to_quat(R, qR)
+        w, qx, qy, qz, qnorm = _unit_quat(quats, n)
+        # centres: A x + t (or R x + t)
+        x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
+        m = A if blended_centres else R
+        gmov = gA if blended_centres else gR
+        gm0, gm1, gm2 = g_means[n, 0], g_means[n, 1], g_means[n, 2]
+        for j in range(3):
+            grad_means[n, j] = m[0, j] * gm0 + m[1, j] * gm1 + m[2, j] * gm2
+        for i, gi in ((0, gm0), (1, gm1), (2, gm2)):
+            gmov[i, 0] += gi * x0
+            gmov[i, 1] += gi * x1
+            gmov[i, 2] += gi * x2
+        # quaternions: qR * q_unit
+        g0, g1, g2, g3 = g_quats[n, 0], g_quats[n, 1], g_quats[n, 2], g_quats[n, 3]
+        aw, ax, ay, az = qR[0], qR[1], qR[2], qR[3]
+        ga0 = g0 * w + g1 * qx + g2 * qy + g3 * qz
+        ga1 = -g0 * qx + g1 * w - g2 * qz + g3 * qy
+        ga2 = -g0 * qy + g1 * qz + g2 * w - g3 * qx
+        ga3 = -g0 * qz - g1 * qy + g2 * qx + g3 * w
+        gu0 = g0 * aw + g1 * ax + g2 * ay + g3 * az
+        gu1 = -g0 * ax + g1 * aw + g2 * az - g3 * ay
+        gu2 = -g0 * ay - g1 * az + g2 * aw + g3 * ax
+        gu3 = -g0 * az + g1 * ay - g2 * ax + g3 * aw
+        if diag_stretch:
+            # k_l = a_l^T M a_l with M = R^T A; log k_l clamped below at LBS_MIN_STRETCH (no gradient there)
+            _axes(w, qx, qy, qz, Q)
+            _rt_a(R, A, M)
             for i in range(3):
-                ra = 0.0  # (R^T A a_l)_i
                 for j in range(3):
-                    ra += (R[0, i] * A[0, j] + R[1, i] * A[1, j] + R[2, i] * A[2, j]) * Q[j, l]
-                k += Q[i, l] * ra
-            out_log_scales[n, l] = log_scales[n, l] + math.log(max(k, LBS_MIN_STRETCH))
+                    gM[i, j] = 0.0
+                    gQ[i, j] = 0.0
+            for l in range(3):  # noqa: E741
+                k = 0.0
+                for i in range(3):
+                    k += Q[i, l] * (M[i, 0] * Q[0, l] + M[i, 1] * Q[1, l] + M[i, 2] * Q[2, l])
+                gk = g_log_scales[n, l] / k if k >= LBS_MIN_STRETCH else 0.0
+                for i in range(3):
+                    for j in range(3):
+                        gM[i, j] += gk * Q[i, l] * Q[j, l]
+                    gQ[i, l] += gk * (M[i, 0] * Q[0, l] + M[i, 1] * Q[1, l] + M[i, 2] * Q[2, l]
+                                      + M[0, i] * Q[0, l] + M[1, i] * Q[1, l] + M[2, i] * Q[2, l])  # fmt: skip
+            for a in range(3):
+                for b in range(3):
+                    gR[a, b] += A[a, 0] * gM[b, 0] + A[a, 1] * gM[b, 1] + A[a, 2] * gM[b, 2]  # A gM^T
+                    gA[a, b] += R[a, 0] * gM[0, b] + R[a, 1] * gM[1, b] + R[a, 2] * gM[2, b]  # R gM
+            # through Q = rot(q_unit) (framework.geometry._QuatToRotmat.backward)
+            s01, s02, s12 = gQ[0, 1] + gQ[1, 0], gQ[0, 2] + gQ[2, 0], gQ[1, 2] + gQ[2, 1]
+            a01, a02, a12 = gQ[1, 0] - gQ[0, 1], gQ[0, 2] - gQ[2, 0], gQ[2, 1] - gQ[1, 2]
+            gu0 += 2 * (qz * a01 + qy * a02 + qx * a12)
+            gu1 += 2 * (qy * s01 + qz * s02 + w * a12 - 2 * qx * (gQ[1, 1] + gQ[2, 2]))
+            gu2 += 2 * (qx * s01 + w * a02 + qz * s12 - 2 * qy * (gQ[0, 0] + gQ[2, 2]))
+            gu3 += 2 * (w * a01 + qx * s02 + qy * s12 - 2 * qz * (gQ[0, 0] + gQ[1, 1]))
+        # through q / |q| (radial part removed; a quaternion below NORM_EPS is the constant identity)
+        if qnorm > NORM_EPS:
+            dot = w * gu0 + qx * gu1 + qy * gu2 + qz * gu3
+            grad_quats[n, 0] = (gu0 - w * dot) / qnorm
+            grad_quats[n, 1] = (gu1 - qx * dot) / qnorm
+            grad_quats[n, 2] = (gu2 - qy * dot) / qnorm
+            grad_quats[n, 3] = (gu3 - qz * dot) / qnorm
+        else:
+            grad_quats[n, 0] = grad_quats[n, 1] = grad_quats[n, 2] = grad_quats[n, 3] = 0.0
+        # through qR = s v (v the chosen row of 4 q q^T, linear in R; s = +-1 / |v|)
+        dot = aw * ga0 + ax * ga1 + ay * ga2 + az * ga3
+        gv0, gv1, gv2, gv3 = s * (ga0 - aw * dot), s * (ga1 - ax * dot), s * (ga2 - ay * dot), s * (ga3 - az * dot)
+        gd0 = gd1 = gd2 = gd3 = gwx = gwy = gwz = gxy = gxz = gyz = 0.0
+        if best == 0:
+            gd0, gwx, gwy, gwz = gv0, gv1, gv2, gv3
+        elif best == 1:
+            gwx, gd1, gxy, gxz = gv0, gv1, gv2, gv3
+        elif best == 2:
+            gwy, gxy, gd2, gyz = gv0, gv1, gv2, gv3
+        else:
+            gwz, gxz, gyz, gd3 = gv0, gv1, gv2, gv3
+        gR[0, 0] += gd0 + gd1 - gd2 - gd3
+        gR[1, 1] += gd0 - gd1 + gd2 - gd3
+        gR[2, 2] += gd0 - gd1 - gd2 + gd3
+        gR[2, 1] += gwx + gyz
+        gR[1, 2] += gyz - gwx
+        gR[0, 2] += gwy + gxz
+        gR[2, 0] += gxz - gwy
+        gR[1, 0] += gwz + gxy
+        gR[0, 1] += gxy - gwz
+        # through R = polar(A)
+        _polar_backward(A, R, gR, polar)
+        for i in range(3):
+            for j in range(3):
+                grad_A9[3 * i + j, n] = gA[i, j] + polar[i, j]
+
+
+class _SkinAffine(torch.autograd.Function):
+    """(A9 [9, N], t3 [3, N], means [N, 3], quats [N, 4], log_scales [N, 3]) -> (means', quats', log_scales' [N, 3],
+    R [N, 3, 3]), differentiable in the five inputs; float64 inside, results in the inputs' dtype."""
+
+    @staticmethod
+    def forward(ctx, A9, t3, means, quats, log_scales, blended: bool, diag: bool):  # type: ignore[override]
+        from framework.splat.compiled_cpu import float64_array as f64
+
+        N, dtype = means.shape[0], means.dtype
+        a9, m64, q64 = f64(A9), f64(means), f64(quats)
+        out = (np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.empty((N, 3, 3)))
+        run_chunked(skin_affine_forward, (a9, f64(t3), m64, q64, f64(log_scales), blended, diag), out, N)
+        ctx.arrays = (a9, m64, q64, out[3])  # numpy: the forward's float64 copies and R, for the backward
+        ctx.flags, ctx.dtype = (blended, diag), dtype
+        return tuple(torch.from_numpy(o).to(dtype) for o in out)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_means, g_quats, g_log_scales, g_rotations):  # type: ignore[override]
+        from framework.splat.compiled_cpu import float64_array as f64
+
+        a9, m64, q64, r64 = ctx.arrays
+        N, dtype = m64.shape[0], ctx.dtype
+        zeros = torch.zeros
+        g_m = f64(g_means) if g_means is not None else np.zeros((N, 3))
+        g_q = f64(g_quats) if g_quats is not None else np.zeros((N, 4))
+        g_ls = g_log_scales if g_log_scales is not None else zeros(N, 3, dtype=dtype)
+        g_r = f64(g_rotations) if g_rotations is not None else np.zeros((N, 3, 3))
+        out = (np.empty((9, N)), np.empty((N, 3)), np.empty((N, 4)))
+        run_chunked(skin_affine_backward, (a9, m64, q64, r64, *ctx.flags, g_m, g_q, f64(g_ls), g_r), out, N)
+        big = torch.finfo(dtype).max  # a float32 result saturates rather than overflowing to inf
+        grad_A9 = torch.from_numpy(out[0]).clamp(-big, big).to(dtype)
+        grad_t3 = torch.from_numpy(g_m).t().to(dtype)
+        grads = (grad_A9, grad_t3, torch.from_numpy(out[1]).to(dtype), torch.from_numpy(out[2]).to(dtype), g_ls)
+        return (*grads, None, None)
+
+
+def lbs_with_sh_frames_trainable(gaussians, weights, transforms, stretch: str = "diag", centres: str = "blended"):
+    """`framework.rig.lbs.lbs_with_sh_frames` with gradients, the per-Gaussian part compiled: the blend (one matrix
+    product, `blended_affine`) stays in torch, the polar decomposition, quaternions, centres and stretch run in
+    `skin_affine_forward` and their gradients in `skin_affine_backward`, on every thread. CPU tensors only."""
+    from framework.rig.lbs import blended_affine
+
+    A, t = blended_affine(weights, transforms)  # [3, 3, N], [3, N]
+    N = A.shape[-1]
+    means, quats, log_scales, R = _SkinAffine.apply(
+        A.reshape(9, N), t, gaussians.means, gaussians.quats, gaussians.log_scales, centres == "blended",
+        stretch == "diag",
+    )  # fmt: skip
+    return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R
 
 
 def lbs_with_sh_frames_compiled(gaussians, weights, transforms, stretch: str = "diag", centres: str = "blended"):
     """`framework.rig.lbs.lbs_with_sh_frames` (posed Gaussians with canonical SH, R [N, 3, 3]) through `skin`: no
     gradients, CPU tensors; results in the Gaussians' dtype."""
-    import torch
-
     from framework.splat.compiled_cpu import float64_array as f64
 
     N, dtype = gaussians.means.shape[0], gaussians.means.dtype

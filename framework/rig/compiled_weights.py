@@ -26,8 +26,6 @@ values and gradients against the torch path in float64 and by finite differences
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -35,24 +33,11 @@ from numba import njit
 from torch import Tensor
 
 from framework.guards import WEIGHT_FIELD_NAN_NODE, WEIGHT_VAR_MIN
+from framework.rig.compiled_threads import run_chunked
 from framework.rig.weight_field import WeightField
 
 #: F_dw's combination with the grid weights: none (F_dw off), softmax, additive (`LBSResidualDeformer.residual`)
 COMBINE_MODES = {"none": 0, "softmax": 1, "additive": 2}
-
-#: below this many Gaussians per chunk a second thread costs more than it gains
-_MIN_CHUNK = 1024
-
-_pool: ThreadPoolExecutor | None = None
-
-
-def _forget_pool() -> None:
-    """A forked child (a data-loader worker) inherits the pool without its threads: it would wait on them forever."""
-    global _pool
-    _pool = None
-
-
-os.register_at_fork(after_in_child=_forget_pool)
 
 #: reassociation lets LLVM vectorise the sums over the joints; no flag that assumes finite values (the NaN test)
 _FASTMATH = {"reassoc", "contract"}
@@ -223,29 +208,6 @@ def smooth_weights_backward(
             grad_points[n, k, 0], grad_points[n, k, 1], grad_points[n, k, 2] = sx, sy, sz
 
 
-def _chunks(n: int) -> list[tuple[int, int]]:
-    """Gaussian ranges, one per thread torch may use (the loops release the GIL)."""
-    parts = max(1, min(torch.get_num_threads(), n // _MIN_CHUNK))
-    edges = np.linspace(0, n, parts + 1).astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-
-
-def _run_chunked(kernel, args_before: tuple, args_after: tuple, n: int) -> None:
-    """kernel(*args_before, start, stop, *args_after) over `_chunks(n)`, the first chunks on worker threads."""
-    global _pool
-    chunks = _chunks(n)
-    if len(chunks) == 1:
-        kernel(*args_before, 0, n, *args_after)
-        return
-    if _pool is None:
-        _pool = ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads() - 1), thread_name_prefix="weights")
-    futures = [_pool.submit(kernel, *args_before, a, b, *args_after) for a, b in chunks[:-1]]
-    a, b = chunks[-1]
-    kernel(*args_before, a, b, *args_after)
-    for f in futures:
-        f.result()
-
-
 class _SmoothWeights(torch.autograd.Function):
     """points [N, 7, 3], dw [N, 7, J] or None -> (w_centre [N, J], l_w [N]); differentiable in points and dw."""
 
@@ -263,7 +225,7 @@ class _SmoothWeights(torch.autograd.Function):
         grid_all, weights_all = points.new_empty(n, 7, J), points.new_empty(n, 7, J)
         fixed = (p.numpy(), table.numpy(), lo, hi, counts, d.numpy(), mode, eps)
         outputs = (w_centre.numpy(), l_w.numpy(), grid_all.numpy(), weights_all.numpy())
-        _run_chunked(smooth_weights_forward, fixed, outputs, n)
+        run_chunked(smooth_weights_forward, fixed, outputs, n)
         ctx.save_for_backward(p, grid_all, weights_all)
         ctx.fixed = (table, lo, hi, counts, mode, eps)
         ctx.dw_dtype = dw.dtype if dw is not None else None
@@ -281,7 +243,7 @@ class _SmoothWeights(torch.autograd.Function):
         grad_dw = p.new_empty(n, 7, J) if mode else p.new_zeros(0, 7, J)
         fixed = (p.numpy(), table.numpy(), lo, hi, counts, mode, eps, grid_all.numpy(), weights_all.numpy())
         fixed += (grad_centre.numpy(), grad_lw.numpy())
-        _run_chunked(smooth_weights_backward, fixed, (grad_points.numpy(), grad_dw.numpy()), n)
+        run_chunked(smooth_weights_backward, fixed, (grad_points.numpy(), grad_dw.numpy()), n)
         grad_dw_out = grad_dw.to(ctx.dw_dtype) if ctx.dw_dtype is not None else None
         return grad_points, grad_dw_out, None, None, None, None, None, None
 
