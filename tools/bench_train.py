@@ -59,14 +59,14 @@ from framework.evaluation.gemm_rate import gemm_rate, record_gemms, replay_gemms
 VARIANTS: dict[str, list[str]] = {
     "default": [],
     "log_every_step": ["trainer.log_every=1"],
-    "polar_float64": ["deformer.polar_dtype=float64"],
+    "polar_float64": ["deformer.polar_dtype=float64", "deformer.compiled_skinning=false"],  # the torch path's polar
     "compile": ["rasterizer=torch_ref", "rasterizer.compile=true"],
     "data_worker": ["data_loader.num_workers=1"],
     "torch_ref": ["rasterizer=torch_ref"],
     "torch_weights": ["deformer.compiled_weights=false"],
     "torch_skinning": ["deformer.compiled_skinning=false"],
 }
-DEFAULT_VARIANTS = ["default", "log_every_step", "polar_float64"]
+DEFAULT_VARIANTS = ["default", "log_every_step", "torch_skinning", "polar_float64"]
 
 # Row order of the table (labels not listed are appended in the order they were seen).
 ROWS = [
