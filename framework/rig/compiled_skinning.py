@@ -120,16 +120,17 @@ def _polar_block(A9, start, stop, X, state) -> None:
                     X[3 * i + j, k] = M[i, j]
 
 
-@njit(cache=True, nogil=True)
-def _rotmat_to_quat(R, q) -> tuple[int, float]:
-    """q (wxyz, w >= 0) of the rotation R, from the row of 4 q q^T with the largest diagonal entry. Returns the row
-    taken and the signed factor s with q = s v (v that row, s = +-1 / |v|), which the backward needs."""
-    v0 = 1.0 + R[0, 0] + R[1, 1] + R[2, 2]
-    v1 = 1.0 + R[0, 0] - R[1, 1] - R[2, 2]
-    v2 = 1.0 - R[0, 0] + R[1, 1] - R[2, 2]
-    v3 = 1.0 - R[0, 0] - R[1, 1] + R[2, 2]
-    wx, wy, wz = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]
-    xy, xz, yz = R[1, 0] + R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1]
+@njit(cache=True, nogil=True, inline="always")
+def _rotmat_to_quat(r00, r01, r02, r10, r11, r12, r20, r21, r22) -> tuple[int, float, float, float, float, float]:
+    """The quaternion (wxyz, w >= 0) of the rotation R (row-major entries), from the row of 4 q q^T with the largest
+    diagonal entry: (row taken, s, w, x, y, z), with s the signed factor of q = s v (v that row, s = +-1 / |v|),
+    which the backward needs."""
+    v0 = 1.0 + r00 + r11 + r22
+    v1 = 1.0 + r00 - r11 - r22
+    v2 = 1.0 - r00 + r11 - r22
+    v3 = 1.0 - r00 - r11 + r22
+    wx, wy, wz = r21 - r12, r02 - r20, r10 - r01
+    xy, xz, yz = r10 + r01, r02 + r20, r12 + r21
     first, m01 = (1 if v1 > v0 else 0), max(v0, v1)
     second, m23 = (3 if v3 > v2 else 2), max(v2, v3)
     best = second if m23 > m01 else first
@@ -144,11 +145,10 @@ def _rotmat_to_quat(R, q) -> tuple[int, float]:
     s = 1.0 / math.sqrt(a * a + b * b + c * c + d * d)
     if a * s < 0:
         s = -s
-    q[0], q[1], q[2], q[3] = a * s, b * s, c * s, d * s
-    return best, s
+    return best, s, a * s, b * s, c * s, d * s
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _unit_quat(quats, n) -> tuple[float, float, float, float, float]:
     """(w, x, y, z, |q|) of quats[n] normalised; one below NORM_EPS is the identity (framework.geometry's rule)."""
     w, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
@@ -158,53 +158,91 @@ def _unit_quat(quats, n) -> tuple[float, float, float, float, float]:
     return 1.0, 0.0, 0.0, 0.0, qn
 
 
-@njit(cache=True, nogil=True)
-def _axes(w, qx, qy, qz, Q) -> None:
-    """Q = the rotation of the unit quaternion wxyz: its columns are the Gaussian's axes a_l."""
-    Q[0, 0], Q[0, 1], Q[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)
-    Q[1, 0], Q[1, 1], Q[1, 2] = 2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx)
-    Q[2, 0], Q[2, 1], Q[2, 2] = 2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)
+@njit(cache=True, nogil=True, inline="always")
+def _axes(w, qx, qy, qz) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The rotation of the unit quaternion wxyz, row-major: its columns are the Gaussian's axes a_l."""
+    return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
+            2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx),
+            2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy))  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rt_a(r00, r01, r02, r10, r11, r12, r20, r21, r22, a00, a01, a02, a10, a11, a12, a20, a21, a22
+          ) -> tuple[float, float, float, float, float, float, float, float, float]:  # fmt: skip
+    """R^T A, row-major, from the row-major entries of R and A."""
+    # fmt: off
+    return (r00 * a00 + r10 * a10 + r20 * a20, r00 * a01 + r10 * a11 + r20 * a21, r00 * a02 + r10 * a12 + r20 * a22,
+            r01 * a00 + r11 * a10 + r21 * a20, r01 * a01 + r11 * a11 + r21 * a21, r01 * a02 + r11 * a12 + r21 * a22,
+            r02 * a00 + r12 * a10 + r22 * a20, r02 * a01 + r12 * a11 + r22 * a21, r02 * a02 + r12 * a12 + r22 * a22)
+    # fmt: on
 
 
 @njit(cache=True, nogil=True)
-def _rt_a(R, A, M) -> None:
-    """M = R^T A."""
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = R[0, i] * A[0, j] + R[1, i] * A[1, j] + R[2, i] * A[2, j]
+def _rt_a_into(R, A, M) -> None:
+    """M = R^T A for [3, 3] arrays (`_rt_a`)."""
+    M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2] = _rt_a(
+        R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2],
+        A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2])  # fmt: skip
 
 
-@njit(cache=True, nogil=True)
-def _pose_one(n, A, tv, means, quats, log_scales, blended_centres, diag_stretch, R, Q, X, qR,
-              out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
-    """Pose Gaussian n with its blended affine A [3, 3], translation tv [3] and A's rotation factor R [3, 3]; Q, X
-    [3, 3], qR [4]: work space (qR holds R's quaternion afterwards)."""
-    _rotmat_to_quat(R, qR)
+@njit(cache=True, nogil=True, inline="always")
+def _quadratic_form(c0, c1, c2, m00, m01, m02, m10, m11, m12, m20, m21, m22) -> float:
+    """c^T M c (row-major entries of M), summed row by row as the backward does."""
+    k = 0.0
+    k += c0 * (m00 * c0 + m01 * c1 + m02 * c2)
+    k += c1 * (m10 * c0 + m11 * c1 + m12 * c2)
+    k += c2 * (m20 * c0 + m21 * c1 + m22 * c2)
+    return k
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stretch(q00, q01, q02, q10, q11, q12, q20, q21, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22
+             ) -> tuple[float, float, float]:  # fmt: skip
+    """k_l = a_l^T M a_l for the columns a_l of Q (row-major entries of Q and M)."""
+    return (_quadratic_form(q00, q10, q20, m00, m01, m02, m10, m11, m12, m20, m21, m22),
+            _quadratic_form(q01, q11, q21, m00, m01, m02, m10, m11, m12, m20, m21, m22),
+            _quadratic_form(q02, q12, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22))  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")  # a call passing its nine arrays cost as much as the work
+def _pose_lane(n, k, A9, t3, X, means, quats, log_scales, blended_centres, diag_stretch,
+               out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
+    """Pose Gaussian n from its blended affine part (A9[:, n], t3[:, n]) and A's rotation factor X[:, k]. On scalars:
+    copied into 3x3 arrays, the same arithmetic took 2.3x as long (every entry went through memory)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = X[0, k], X[1, k], X[2, k], X[3, k], X[4, k], X[5, k], X[6, k], \
+        X[7, k], X[8, k]  # fmt: skip
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = A9[0, n], A9[1, n], A9[2, n], A9[3, n], A9[4, n], A9[5, n], \
+        A9[6, n], A9[7, n], A9[8, n]  # fmt: skip
+    _, _, aw, ax, ay, az = _rotmat_to_quat(r00, r01, r02, r10, r11, r12, r20, r21, r22)
     x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
-    m = A if blended_centres else R
-    for i in range(3):
-        out_means[n, i] = m[i, 0] * x0 + m[i, 1] * x1 + m[i, 2] * x2 + tv[i]
+    if blended_centres:
+        out_means[n, 0] = a00 * x0 + a01 * x1 + a02 * x2 + t3[0, n]
+        out_means[n, 1] = a10 * x0 + a11 * x1 + a12 * x2 + t3[1, n]
+        out_means[n, 2] = a20 * x0 + a21 * x1 + a22 * x2 + t3[2, n]
+    else:
+        out_means[n, 0] = r00 * x0 + r01 * x1 + r02 * x2 + t3[0, n]
+        out_means[n, 1] = r10 * x0 + r11 * x1 + r12 * x2 + t3[1, n]
+        out_means[n, 2] = r20 * x0 + r21 * x1 + r22 * x2 + t3[2, n]
     w, qx, qy, qz, _ = _unit_quat(quats, n)
-    aw, ax, ay, az = qR[0], qR[1], qR[2], qR[3]
     out_quats[n, 0] = aw * w - ax * qx - ay * qy - az * qz
     out_quats[n, 1] = aw * qx + ax * w + ay * qz - az * qy
     out_quats[n, 2] = aw * qy - ax * qz + ay * w + az * qx
     out_quats[n, 3] = aw * qz + ax * qy - ay * qx + az * w
-    for i in range(3):
-        for j in range(3):
-            out_rotations[n, i, j] = R[i, j]
+    out_rotations[n, 0, 0], out_rotations[n, 0, 1], out_rotations[n, 0, 2] = r00, r01, r02
+    out_rotations[n, 1, 0], out_rotations[n, 1, 1], out_rotations[n, 1, 2] = r10, r11, r12
+    out_rotations[n, 2, 0], out_rotations[n, 2, 1], out_rotations[n, 2, 2] = r20, r21, r22
     if not diag_stretch:
         for l in range(3):  # noqa: E741
             out_log_scales[n, l] = log_scales[n, l]
         return
     # the Gaussian's axes a_l (columns of its rotation) and k_l = a_l^T (R^T A) a_l
-    _axes(w, qx, qy, qz, Q)
-    _rt_a(R, A, X)
-    for l in range(3):  # noqa: E741
-        k = 0.0
-        for i in range(3):
-            k += Q[i, l] * (X[i, 0] * Q[0, l] + X[i, 1] * Q[1, l] + X[i, 2] * Q[2, l])
-        out_log_scales[n, l] = log_scales[n, l] + math.log(max(k, LBS_MIN_STRETCH))
+    q00, q01, q02, q10, q11, q12, q20, q21, q22 = _axes(w, qx, qy, qz)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = _rt_a(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                        a00, a01, a02, a10, a11, a12, a20, a21, a22)  # fmt: skip
+    k0, k1, k2 = _stretch(q00, q01, q02, q10, q11, q12, q20, q21, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22)
+    out_log_scales[n, 0] = log_scales[n, 0] + math.log(max(k0, LBS_MIN_STRETCH))
+    out_log_scales[n, 1] = log_scales[n, 1] + math.log(max(k1, LBS_MIN_STRETCH))
+    out_log_scales[n, 2] = log_scales[n, 2] + math.log(max(k2, LBS_MIN_STRETCH))
 
 
 @njit(cache=True, nogil=True)
@@ -236,19 +274,12 @@ def skin_affine_forward(A9, t3, means, quats, log_scales, blended_centres, diag_
     frames). The polar decomposition runs a block of Gaussians at a time (`_polar_block`), the rest per Gaussian."""
     X = np.empty((9, _BLOCK))
     state = np.empty(_BLOCK, np.int8)
-    A, R, Q, M = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    tv, qR = np.empty(3), np.empty(4)
     for first in range(start, stop, _BLOCK):
         last = min(first + _BLOCK, stop)
         _polar_block(A9, first, last, X, state)
         for n in range(first, last):
-            for i in range(3):
-                for j in range(3):
-                    A[i, j] = A9[3 * i + j, n]
-                    R[i, j] = X[3 * i + j, n - first]
-                tv[i] = t3[i, n]
-            _pose_one(n, A, tv, means, quats, log_scales, blended_centres, diag_stretch, R, Q, M, qR,
-                      out_means, out_quats, out_log_scales, out_rotations)  # fmt: skip
+            _pose_lane(n, n - first, A9, t3, X, means, quats, log_scales, blended_centres, diag_stretch,
+                       out_means, out_quats, out_log_scales, out_rotations)  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
@@ -257,9 +288,9 @@ def _polar_backward(A, R, G, out) -> None:
     S = sym(R^T A) and B = tr(S) I - S, h solves (B B + d^2 I) h = B vee(skew(R^T G)) (Tikhonov-damped), and
     dL/dA = R skew(h); entries that are not finite are 0."""
     S = np.empty((3, 3))
-    _rt_a(R, A, S)
+    _rt_a_into(R, A, S)
     W = np.empty((3, 3))
-    _rt_a(R, G, W)
+    _rt_a_into(R, G, W)
     g0, g1, g2 = W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]
     tr = S[0, 0] + S[1, 1] + S[2, 2]
     B = np.empty((3, 3))
@@ -299,7 +330,6 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
     g_means itself, the log-scales' is g_log_scales: the wrapper passes those on.)"""
     A, R, Q, M = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     gA, gR, gQ, gM, polar = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    qR = np.empty(4)
     for n in range(start, stop):
         for i in range(3):
             for j in range(3):
@@ -307,7 +337,8 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
                 R[i, j] = rotations[n, i, j]
                 gR[i, j] = g_rotations[n, i, j]
                 gA[i, j] = 0.0
-        best, s = _rotmat_to_quat(R, qR)
+        best, s, aw, ax, ay, az = _rotmat_to_quat(R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0],
+                                                  R[2, 1], R[2, 2])  # fmt: skip
         w, qx, qy, qz, qnorm = _unit_quat(quats, n)
         # centres: A x + t (or R x + t)
         x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
@@ -322,7 +353,6 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
             gmov[i, 2] += gi * x2
         # quaternions: qR * q_unit
         g0, g1, g2, g3 = g_quats[n, 0], g_quats[n, 1], g_quats[n, 2], g_quats[n, 3]
-        aw, ax, ay, az = qR[0], qR[1], qR[2], qR[3]
         ga0 = g0 * w + g1 * qx + g2 * qy + g3 * qz
         ga1 = -g0 * qx + g1 * w - g2 * qz + g3 * qy
         ga2 = -g0 * qy + g1 * qz + g2 * w - g3 * qx
@@ -333,8 +363,8 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
         gu3 = -g0 * az + g1 * ay - g2 * ax + g3 * aw
         if diag_stretch:
             # k_l = a_l^T M a_l with M = R^T A; log k_l clamped below at LBS_MIN_STRETCH (no gradient there)
-            _axes(w, qx, qy, qz, Q)
-            _rt_a(R, A, M)
+            Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2] = _axes(w, qx, qy, qz)
+            _rt_a_into(R, A, M)
             for i in range(3):
                 for j in range(3):
                     gM[i, j] = 0.0
