@@ -83,6 +83,32 @@ def test_first_layer_split_equals_concatenated_mlp():
     assert torch.equal(out.means, g.means)
 
 
+@pytest.mark.parametrize("rows", [None, [3, 10, 11, 40]])
+def test_inference_layers_equal_the_plain_ones(rows):
+    """Without gradients F_a runs oneDNN's fused linear + bias + ReLU (`corrector_mlp._fuses_layers`); its residuals
+    must equal the plain nn.Linear layers' (taken with gradients on) to float32 rounding, a partial fold's rows
+    included. Every layer is randomised, so a wrong bias, a missing ReLU or a layer skipped would show."""
+    from framework.model import corrector_mlp
+
+    c = build("latent")
+    torch.manual_seed(2)
+    with torch.no_grad():
+        for p in c.parameters():
+            p.normal_(0, 0.3)
+    if rows is not None:
+        c.active_rows = torch.tensor(rows)
+    g, pose = gaussians(300), torch.randn(P)
+    assert corrector_mlp._FUSED_LINEAR_AVAILABLE  # the CPU build CI installs has it: the fused path is tested
+    with torch.no_grad():
+        assert corrector_mlp._fuses_layers(g.latents)
+        fused = c.residuals(g, pose)
+    with torch.enable_grad():
+        assert not corrector_mlp._fuses_layers(g.latents)
+        plain = c.residuals(g, pose).detach()
+    assert fused.abs().max() > 0.1  # the layers do something
+    torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)  # float32: products summed in another order
+
+
 def test_sh0_only_vs_all_sh():
     g, pose = gaussians(), torch.randn(P)
     c0, ca = build("latent"), build("latent", all_sh=True)

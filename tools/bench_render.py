@@ -126,11 +126,12 @@ def pose_frame_parts(
 
 
 def corrector_gflop(avatar: Avatar, pose_features: torch.Tensor) -> float:
-    """GFLOP of one F_a forward over the avatar's Gaussians (0 without an MLP corrector)."""
+    """GFLOP of one F_a forward over the avatar's Gaussians (0 without an MLP corrector). Counted with gradients
+    on, so that F_a takes its plain layers: the counter does not see oneDNN's fused ones (`corrector_mlp`)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     counter = FlopCounterMode(display=False)
-    with torch.no_grad(), counter:
+    with torch.enable_grad(), counter:
         avatar.corrector(avatar.gaussians.gaussians(3), pose_features)
     return counter.get_total_flops() / 1e9
 
