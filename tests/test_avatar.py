@@ -253,3 +253,38 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monk
                                    msg=key)  # fmt: skip
     moved = (posed_torch.means - avatar.gaussians.gaussians().means).detach()
     assert float(moved.abs().max()) > 0.05  # the pose moved them
+
+
+def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
+    """With a `compiled_inference` backend (numba) a frame without gradients gets its view colour from the compiled
+    loop; with gradients, or with torch_ref, from the torch path. The frames agree to float32 rounding (SH of degree
+    1 with random coefficients, a posed avatar, so the skinning frames are not the identity)."""
+    import framework.splat.compiled_sh as compiled_sh
+
+    avatar = _avatar(body)
+    with torch.no_grad():
+        avatar.gaussians.params["shN"].normal_(0, 0.5)
+    calls = []
+    original = compiled_sh.view_colour_dc_compiled
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(compiled_sh, "view_colour_dc_compiled", counted)
+    torch.manual_seed(3)
+    batch = _batch(body, pose=0.4 * torch.randn(1, body.num_joints, 3))
+    avatar.eval()
+    avatar.rasterizer = RASTERIZERS.build("numba")
+    with torch.no_grad():
+        compiled_rgb = avatar(batch, sh_degree=1).render.rgb
+    assert len(calls) == 1
+    grad_rgb = avatar(batch, sh_degree=1).render.rgb  # gradients on: the torch path
+    assert len(calls) == 1 and grad_rgb.requires_grad
+    avatar.rasterizer = RASTERIZERS.build("torch_ref")
+    with torch.no_grad():
+        torch_rgb = avatar(batch, sh_degree=1).render.rgb
+    assert len(calls) == 1
+    assert float(torch_rgb.std()) > 0.01  # the avatar is in the picture
+    torch.testing.assert_close(compiled_rgb, torch_rgb, atol=1e-4, rtol=0)
+    torch.testing.assert_close(compiled_rgb, grad_rgb.detach(), atol=1e-4, rtol=0)

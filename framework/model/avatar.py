@@ -222,8 +222,22 @@ class Avatar(nn.Module):
         )
         return AvatarOutput(render=render, aux=aux, canonical=canonical, posed=posed)
 
-    @staticmethod
-    def _view_colour(posed: Gaussians, frames: Tensor, batch: FrameBatch, sh_degree: int) -> Tensor:
-        """[N, 1, 3] DC coefficients holding each Gaussian's colour towards the one camera (framework.splat.sh)."""
+    def _view_colour(self, posed: Gaussians, frames: Tensor, batch: FrameBatch, sh_degree: int) -> Tensor:
+        """[N, 1, 3] DC coefficients holding each Gaussian's colour towards the one camera (framework.splat.sh);
+        compiled (`framework.splat.compiled_sh`) when the rasterizer renders compiled and no gradient is asked."""
         centre = batch.cameras.centers().to(posed.means)  # [1, 3]
-        return view_colour_dc(sh_degree, posed.sh, posed.means - centre, frames)
+        dirs = posed.means - centre  # [N, 3]
+        if self._compiles_view_colour(posed.sh, dirs, frames):
+            from framework.splat.compiled_sh import view_colour_dc_compiled  # imports numba: first use only
+
+            return view_colour_dc_compiled(sh_degree, posed.sh, dirs, frames)
+        return view_colour_dc(sh_degree, posed.sh, dirs, frames)
+
+    def _compiles_view_colour(self, sh: Tensor, dirs: Tensor, frames: Tensor) -> bool:
+        """Whether the view colour takes the compiled loop: a backend with `compiled_inference` (numba), CPU float
+        tensors, no gradient asked."""
+        if not getattr(self._rasterizer, "compiled_inference", False) or sh.device.type != "cpu":
+            return False
+        if sh.dtype not in (torch.float32, torch.float64):
+            return False
+        return not (torch.is_grad_enabled() and any(t.requires_grad for t in (sh, dirs, frames)))

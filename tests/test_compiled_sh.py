@@ -1,0 +1,56 @@
+"""The compiled view colour (`framework.splat.compiled_sh`) against the torch path in float64, and the switch that
+turns it on in an avatar's renders."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from framework.geometry import axis_angle_to_rotmat
+from framework.splat.compiled_sh import view_colour_dc_compiled
+from framework.splat.sh import view_colour_dc
+
+F64 = torch.float64
+
+
+def _inputs(n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(n)
+    coeffs = torch.randn(n, 16, 3, generator=g, dtype=F64)
+    dirs = torch.randn(n, 3, generator=g, dtype=F64) * torch.rand(n, 1, generator=g, dtype=F64) * 4
+    dirs[0] = 0.0  # the camera at the mean: only the constant term
+    dirs[1] = torch.tensor([0.0, 1e-13, 0.0], dtype=F64)  # shorter than NORM_EPS: divided by the floor, not 1e-13
+    frames = axis_angle_to_rotmat(torch.randn(n, 3, generator=g, dtype=F64) * 2)
+    return coeffs.to(dtype), dirs.to(dtype), frames.to(dtype)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_matches_torch_in_float64(degree: int) -> None:
+    """Every band against `view_colour_dc` (the torch basis, frames^T d by a batched product), all in float64."""
+    coeffs, dirs, frames = _inputs(300, F64)
+    got = view_colour_dc_compiled(degree, coeffs, dirs, frames)
+    torch.testing.assert_close(got, view_colour_dc(degree, coeffs, dirs, frames), rtol=1e-12, atol=1e-12)
+    assert got.shape == (300, 1, 3) and got.dtype == F64
+
+
+def test_float32_agrees_to_rounding_and_keeps_the_dtype() -> None:
+    coeffs, dirs, frames = _inputs(500, torch.float32)
+    got = view_colour_dc_compiled(3, coeffs, dirs, frames)
+    ref = view_colour_dc(3, coeffs.double(), dirs.double(), frames.double())
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), ref, rtol=1e-5, atol=1e-5)
+
+
+def test_only_the_active_bands_are_read() -> None:
+    """Coefficients beyond (degree + 1)^2 do not change the colour (a model whose schedule has not raised the degree
+    yet keeps zeros there, but a compact export may hold anything)."""
+    coeffs, dirs, frames = _inputs(50, F64)
+    noisy = coeffs.clone()
+    noisy[:, 4:] = 1e6
+    torch.testing.assert_close(view_colour_dc_compiled(1, noisy, dirs, frames),
+                               view_colour_dc_compiled(1, coeffs, dirs, frames), rtol=0, atol=0)  # fmt: skip
+
+
+def test_a_bad_degree_is_refused() -> None:
+    coeffs, dirs, frames = _inputs(5, F64)
+    with pytest.raises(ValueError, match="sh_degree 3 needs"):
+        view_colour_dc_compiled(3, coeffs[:, :9], dirs, frames)
