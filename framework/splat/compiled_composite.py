@@ -73,29 +73,27 @@ class CompiledComposite(torch.autograd.Function):
         ctx.shape = (num_cameras * height, width)
         ctx.set_materialize_grads(False)  # an unused output (depth, usually) gets no backward work
 
-        def pixels(a: np.ndarray) -> Tensor:  # slots -> [C*H*W, ...] in the caller's dtype
-            rows = a.reshape(num_cameras * height, width + 1, *a.shape[1:])[:, :width]
-            return torch.from_numpy(np.ascontiguousarray(rows)).reshape(-1, *a.shape[1:]).to(dtype)
-
-        return pixels(acc[:, :3]), pixels(T), pixels(acc[:, 3])
+        pixels = num_cameras * height * width
+        out_dtype = np.float32 if dtype == torch.float32 else np.float64  # sums in float64, stored as the caller's
+        rgb, trans, depth = np.empty((pixels, 3), out_dtype), np.empty(pixels, out_dtype), np.empty(pixels, out_dtype)
+        compiled_cpu.slots_to_pixels(acc, T, width, rgb, trans, depth)
+        return tuple(torch.from_numpy(a).to(dtype) for a in (rgb, trans, depth))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, g_rgb: Tensor | None, g_T: Tensor | None, g_depth: Tensor | None):  # type: ignore[override]
         means2d, conics, opacities, colors, depths = ctx.entries
-        rows, width = ctx.shape
+        width = ctx.shape[1]
         M = means2d.shape[0]
         like = next(g for g in (g_rgb, g_T, g_depth) if g is not None)
 
-        def slots(g: Tensor | None, k: int) -> np.ndarray:  # [C*H*W(, k)] -> [slots, k], zero on the row ends
-            out = np.zeros((rows, width + 1, k))
-            if g is not None:
-                out[:, :width] = float64_array(g).reshape(rows, width, k)
-            return out.reshape(rows * (width + 1), k)
+        def pixels(g: Tensor | None, k: int) -> np.ndarray:  # [C*H*W, k] float64 (size 0: no gradient)
+            return float64_array(g).reshape(-1, k) if g is not None else np.empty((0, k))
 
-        g_acc = np.concatenate((slots(g_rgb, 3), slots(g_depth, 1)), axis=1)  # [slots, 4]
         T = ctx.T.copy()  # walked back to 1 by the backward
-        tail = T * slots(g_T, 1)[:, 0]  # [slots] T_final * dL/dT_final
+        g_acc, tail = np.empty((T.shape[0], 4)), np.empty(T.shape[0])  # [slots, 4], [slots]: T_final * dL/dT_final
+        compiled_cpu.pixels_to_slots(pixels(g_rgb, 3), pixels(g_T, 1)[:, 0], pixels(g_depth, 1)[:, 0], T, width, g_acc,
+                                     tail)  # fmt: skip
         grads = (np.zeros((M, 2)), np.zeros((M, 3)), np.zeros(M), np.zeros((M, 3)), np.zeros(M))
         compiled_cpu.accumulate_backward(ctx.order, ctx.base_row, means2d, conics, opacities, colors, depths, width, T,
                                          *ctx.log, g_acc, tail, *grads)  # fmt: skip

@@ -147,9 +147,10 @@ class NumbaRasterizer(Rasterizer):
         centers = cameras.centers().to(dtype)  # [C, 3]
         colors = _np64(sh_colors(sh_degree, sh, means[None] - centers[:, None]))  # [C, N, 3]
         bg = np.zeros(3) if background is None else _np64(background.reshape(3))  # [3]
-        rgb = np.empty((C, H, W, 3))  # [C, H, W, 3]
-        alpha = np.empty((C, H, W))  # [C, H, W]
-        depth = np.empty((C, H, W))  # [C, H, W]
+        image_dtype = np.float32 if dtype == torch.float32 else np.float64  # sums in float64, stored as the caller's
+        rgb = np.empty((C, H, W, 3), dtype=image_dtype)  # [C, H, W, 3]
+        alpha = np.empty((C, H, W), dtype=image_dtype)  # [C, H, W]
+        depth = np.empty((C, H, W), dtype=image_dtype)  # [C, H, W]
         for c in range(C):
             visible = np.flatnonzero(valid[c])
             order = visible[np.argsort(depths[c, visible], kind="stable")]  # nearest first, ties in Gaussian order
