@@ -211,6 +211,19 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
     assert stage2_started == [10]
 
 
+def _count_calls(monkeypatch, module, name: str) -> list[int]:
+    """Wrap module.name so that each call appends to the returned list (the function still runs)."""
+    calls: list[int] = []
+    original = getattr(module, name)
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls
+
+
 def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monkeypatch):
     """avatar.rasterizer = numba turns the deformer's compiled skinning on, any other backend turns it off. It is
     taken for baked weights without gradients only, and poses the Gaussians as the torch skinning does (to float32
@@ -227,14 +240,7 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monk
     torch.manual_seed(1)
     pose = 0.4 * torch.randn(1, body.num_joints, 3)
     batch = _batch(body, pose=pose)
-    calls = []
-    original = compiled.lbs_with_sh_frames_compiled
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(compiled, "lbs_with_sh_frames_compiled", counted)
+    calls = _count_calls(monkeypatch, compiled, "lbs_with_sh_frames_compiled")
     avatar.rasterizer = RASTERIZERS.build("numba")
     assert deformer.compiled_inference is True
     avatar.eval()
@@ -264,14 +270,7 @@ def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
     avatar = _avatar(body)
     with torch.no_grad():
         avatar.gaussians.params["shN"].normal_(0, 0.5)
-    calls = []
-    original = compiled_sh.view_colour_dc_compiled
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(compiled_sh, "view_colour_dc_compiled", counted)
+    calls = _count_calls(monkeypatch, compiled_sh, "view_colour_dc_compiled")
     torch.manual_seed(3)
     batch = _batch(body, pose=0.4 * torch.randn(1, body.num_joints, 3))
     avatar.eval()
