@@ -54,3 +54,20 @@ def test_a_bad_degree_is_refused() -> None:
     coeffs, dirs, frames = _inputs(5, F64)
     with pytest.raises(ValueError, match="sh_degree 3 needs"):
         view_colour_dc_compiled(3, coeffs[:, :9], dirs, frames)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_rasterizer_colours_match_torch_in_float64(degree: int) -> None:
+    """The numba rasterizer's colours (`sh_colours_compiled`) against torch_ref's `sh_colors` for two cameras, one of
+    them at a Gaussian's mean (only the constant term there), with colours below zero clamped in both."""
+    from framework.splat.compiled_sh import sh_colours_compiled
+    from plugins.rasterizer.torch_ref import sh_colors
+
+    coeffs, dirs, _ = _inputs(300, F64)
+    coeffs[:, 0] -= 2.0  # some colours fall below zero before the clamp
+    means = dirs
+    centres = torch.stack([torch.tensor([0.3, -0.2, 2.0], dtype=F64), means[5]])
+    got = sh_colours_compiled(degree, coeffs, means, centres)
+    ref = sh_colors(degree, coeffs, means[None] - centres[:, None])
+    assert (ref == 0).any() and (ref > 0).any()
+    torch.testing.assert_close(torch.from_numpy(got), ref, rtol=1e-12, atol=1e-12)

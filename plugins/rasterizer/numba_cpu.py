@@ -130,7 +130,7 @@ class NumbaRasterizer(Rasterizer):
         # here, not at module level: plugin discovery imports every backend, and numba's import costs about 0.5 s
         from framework.splat import compiled_cpu
         from framework.splat.compiled_cpu import float64_array as _np64
-        from plugins.rasterizer.torch_ref import sh_colors
+        from framework.splat.compiled_sh import sh_colours_compiled
 
         C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
         dtype = means.dtype
@@ -145,7 +145,7 @@ class NumbaRasterizer(Rasterizer):
                              _np64(cameras.world_to_cam), W, H, float(near), float(far), EPS2D,
                              means2d, conics, depths, half, radii, valid, np.empty((C, N, 3)))  # fmt: skip
         centers = cameras.centers().to(dtype)  # [C, 3]
-        colors = _np64(sh_colors(sh_degree, sh, means[None] - centers[:, None]))  # [C, N, 3]
+        colors = sh_colours_compiled(sh_degree, sh, means, centers)  # [C, N, 3] float64
         bg = np.zeros(3) if background is None else _np64(background.reshape(3))  # [3]
         image_dtype = np.float32 if dtype == torch.float32 else np.float64  # sums in float64, stored as the caller's
         rgb = np.empty((C, H, W, 3), dtype=image_dtype)  # [C, H, W, 3]
