@@ -1,18 +1,19 @@
 """`numba`: `torch_ref`'s function on the CPU as compiled loops; the CPU default for training and rendering.
 
 Viewing, evaluation, frame-rate timing and the novel-view and novel-pose frames of a trained avatar render without
-gradients: there projection and compositing both run compiled. At the sizes a CPU renders in real time, the eager
-rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the loops avoid
-it). A render whose inputs require gradients (training) runs `torch_ref`'s render with two steps replaced by
-compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
-compositing (`framework.splat.compiled_composite`). The SH colours keep torch_ref's autograd code, and means2d is
-still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
+gradients: there projection, SH colours and compositing all run compiled. At the sizes a CPU renders in real time,
+the eager rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the
+loops avoid it). A render whose inputs require gradients (training) runs `torch_ref`'s render with two steps replaced
+by compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
+compositing (`framework.splat.compiled_composite`). There the SH colours keep torch_ref's autograd code, and means2d
+is still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
 `torch_ref`'s. Inputs on another device run `torch_ref` itself; half-precision inputs are rendered in float32, as
 `torch_ref` does, through the same compiled steps.
 
 An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
-(`framework.rig.compiled_skinning`, for LBS deformers with baked weights), so the whole CPU frame but F_a and the
-bone transforms runs compiled.
+(`framework.rig.compiled_skinning`, for LBS deformers with baked weights) and evaluates each Gaussian's colour
+towards the camera compiled (`framework.splat.compiled_sh`), so the whole CPU frame but F_a (oneDNN's fused layers)
+and the bone transforms runs compiled.
 
 The first render on a machine compiles the loops: about 5 s for the rasterizer, 9 s more for the skinning and a few
 more for the backward passes on the 2-core VM (measured with a test run beside it). numba caches them in
