@@ -234,10 +234,7 @@ class Avatar(nn.Module):
         return view_colour_dc(sh_degree, posed.sh, dirs, frames)
 
     def _compiles_view_colour(self, sh: Tensor, dirs: Tensor, frames: Tensor) -> bool:
-        """Whether the view colour takes the compiled loop: a backend with `compiled_inference` (numba), CPU float
-        tensors, no gradient asked."""
-        if not getattr(self._rasterizer, "compiled_inference", False) or sh.device.type != "cpu":
-            return False
-        if sh.dtype not in (torch.float32, torch.float64):
-            return False
-        return not (torch.is_grad_enabled() and any(t.requires_grad for t in (sh, dirs, frames)))
+        """Whether the view colour takes the compiled loop: a backend with `compiled_inference` (numba) that would
+        render these tensors compiled (CPU, float32/64, no gradient asked)."""
+        backend = self._rasterizer
+        return bool(getattr(backend, "compiled_inference", False)) and backend.compiled((sh, dirs, frames))

@@ -187,7 +187,7 @@ def _rt_a_into(R, A, M) -> None:
 
 @njit(cache=True, nogil=True, inline="always")
 def _quadratic_form(c0, c1, c2, m00, m01, m02, m10, m11, m12, m20, m21, m22) -> float:
-    """c^T M c (row-major entries of M), summed row by row as the backward does."""
+    """c^T M c (row-major entries of M), summed row by row."""
     k = 0.0
     k += c0 * (m00 * c0 + m01 * c1 + m02 * c2)
     k += c1 * (m10 * c0 + m11 * c1 + m12 * c2)
@@ -369,10 +369,10 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
                 for j in range(3):
                     gM[i, j] = 0.0
                     gQ[i, j] = 0.0
+            ks = _stretch(Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2],
+                          M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])  # fmt: skip
             for l in range(3):  # noqa: E741
-                k = 0.0
-                for i in range(3):
-                    k += Q[i, l] * (M[i, 0] * Q[0, l] + M[i, 1] * Q[1, l] + M[i, 2] * Q[2, l])
+                k = ks[l]
                 gk = g_log_scales[n, l] / k if k >= LBS_MIN_STRETCH else 0.0
                 for i in range(3):
                     for j in range(3):

@@ -76,7 +76,7 @@ class CompiledComposite(torch.autograd.Function):
         pixels = num_cameras * height * width
         out_dtype = np.float32 if dtype == torch.float32 else np.float64  # sums in float64, stored as the caller's
         rgb, trans, depth = np.empty((pixels, 3), out_dtype), np.empty(pixels, out_dtype), np.empty(pixels, out_dtype)
-        compiled_cpu.slots_to_pixels(acc, T, width, rgb, trans, depth)
+        compiled_cpu.slots_to_pixels(acc, T, width, np.zeros(3), rgb, trans, depth, False)  # background added later
         return tuple(torch.from_numpy(a).to(dtype) for a in (rgb, trans, depth))
 
     @staticmethod
