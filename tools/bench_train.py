@@ -65,6 +65,7 @@ VARIANTS: dict[str, list[str]] = {
     "torch_ref": ["rasterizer=torch_ref"],
     "torch_weights": ["deformer.compiled_weights=false"],
     "torch_skinning": ["deformer.compiled_skinning=false"],
+    "kornia_ssim": ["+loss.terms.dssim.compiled=false"],
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "torch_skinning", "polar_float64"]
 

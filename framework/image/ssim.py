@@ -5,7 +5,9 @@ convolutions of three channels each, and as many in the backward. Here the five 
 go through `kornia.filters.filter2d_separable` once (same kernel, same reflected borders, same combination), so the
 training step pays for two convolutions of fifteen channels. The values equal kornia's (tested in float64, with
 gradients). In `tools/bench_train.py` (paper_full, 128 x 128) the loss's forward went from 8.7-10.3 ms to 4.5-5.2 ms per
-step. Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU path is already channels-last.
+step. On the CPU the whole map, forward and backward, is compiled loops (`framework.image.compiled_ssim`: the same
+moments, filter, borders and combination). Evaluation keeps `kornia.metrics.ssim`, whose
+no-gradient CPU path is already channels-last.
 """
 
 from __future__ import annotations
@@ -17,13 +19,22 @@ SIGMA = 1.5
 """Standard deviation of the Gaussian window, in pixels (Wang et al. 2004; kornia's and 3DGS's choice)."""
 
 
-def ssim_map(img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12) -> Tensor:
-    """Per-pixel SSIM [B, C, H, W] of two images [B, C, H, W] ('same' size, reflected borders), as kornia's."""
+def ssim_map(
+    img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12, compiled: bool | None = None
+) -> Tensor:
+    """Per-pixel SSIM [B, C, H, W] of two images [B, C, H, W] ('same' size, reflected borders), as kornia's.
+
+    `compiled` takes the compiled loops of `framework.image.compiled_ssim` (default: for CPU float tensors), else the
+    moments go through kornia's `filter2d_separable` and torch."""
     from kornia.filters import filter2d_separable  # imported on first use: loading the plugins stays light
     from kornia.filters.kernels import get_gaussian_kernel1d
 
+    from framework.image import compiled_ssim  # (numba, likewise)
+
     kernel = get_gaussian_kernel1d(window_size, SIGMA, device=img1.device, dtype=img1.dtype)  # [1, K]
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    if compiled_ssim.applies(img1) if compiled is None else compiled:
+        return compiled_ssim.ssim_map_compiled(img1, img2, kernel, c1, c2, eps)
     moments = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], dim=1)  # [B, 5C, H, W]
     mu1, mu2, e11, e22, e12 = filter2d_separable(moments, kernel, kernel).split(img1.shape[1], dim=1)
     mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2

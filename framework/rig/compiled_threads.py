@@ -1,10 +1,10 @@
-"""Run a compiled per-Gaussian loop on every CPU thread torch may use: the rows split into contiguous chunks, all
-but the last on a small thread pool, the last on the calling thread.
+"""Run a compiled loop over rows (Gaussians, image planes) on every CPU thread torch may use: the rows split into
+contiguous chunks, all but the last on a small thread pool, the last on the calling thread.
 
-Why threads and not processes: the loops (`framework.rig.compiled_weights`, `framework.rig.compiled_skinning`) are
-numba functions compiled with `nogil=True`, so two threads run them on two cores with no copies. The pool is created
-on first use and forgotten in a forked child (a data-loader worker inherits the pool object but not its threads, and
-would wait on them forever).
+Why threads and not processes: the loops (`framework.rig.compiled_weights`, `framework.rig.compiled_skinning`,
+`framework.image.compiled_ssim`) are numba functions compiled with `nogil=True`, so two threads run them on two cores
+with no copies. The pool is created on first use and forgotten in a forked child (a data-loader worker inherits the
+pool object but not its threads, and would wait on them forever).
 """
 
 from __future__ import annotations
@@ -30,17 +30,21 @@ def _forget_pool() -> None:
 os.register_at_fork(after_in_child=_forget_pool)
 
 
-def row_chunks(n: int) -> list[tuple[int, int]]:
-    """[start, stop) ranges of n rows, one per thread torch may use, none shorter than MIN_CHUNK (but at least one)."""
-    parts = max(1, min(torch.get_num_threads(), n // MIN_CHUNK))
+def row_chunks(n: int, min_chunk: int | None = None) -> list[tuple[int, int]]:
+    """[start, stop) ranges of n rows, one per thread torch may use, none shorter than min_chunk (default MIN_CHUNK;
+    but at least one range)."""
+    parts = max(1, min(torch.get_num_threads(), n // max(1, MIN_CHUNK if min_chunk is None else min_chunk)))
     edges = np.linspace(0, n, parts + 1).astype(int)
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
-def run_chunked(kernel: Callable[..., None], args_before: tuple, args_after: tuple, n: int) -> None:
-    """kernel(*args_before, start, stop, *args_after) over `row_chunks(n)`, the first chunks on worker threads."""
+def run_chunked(
+    kernel: Callable[..., None], args_before: tuple, args_after: tuple, n: int, min_chunk: int | None = None
+) -> None:
+    """kernel(*args_before, start, stop, *args_after) over `row_chunks(n, min_chunk)`, the first chunks on worker
+    threads."""
     global _pool
-    chunks = row_chunks(n)
+    chunks = row_chunks(n, min_chunk)
     if len(chunks) == 1:
         kernel(*args_before, 0, n, *args_after)
         return

@@ -23,14 +23,18 @@ class DSSIMLoss(Loss):
 
     `foreground_only` (the paper's "only foreground" row) compares the two images with everything outside the human
     mask set to zero in both, so nothing rendered outside the mask changes the loss (SSIM of two zero patches is 1).
+
+    `compiled` (default) filters the moments of CPU images with the compiled loop of `framework.image.compiled_filter`;
+    false keeps kornia's depthwise convolutions (the same values to rounding; a benchmark switch).
     """
 
-    def __init__(self, window_size: int = 11, foreground_only: bool = False) -> None:
+    def __init__(self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True) -> None:
         super().__init__()
         if window_size < 1 or window_size % 2 == 0:
             raise ValueError(f"loss 'dssim': window_size must be a positive odd number, got {window_size}.")
         self.window_size = window_size
         self.foreground_only = foreground_only
+        self.compiled = compiled
 
     def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
         pred, target = to_nchw(render.rgb), to_nchw(batch.image.to(render.rgb.dtype))
@@ -39,4 +43,5 @@ class DSSIMLoss(Loss):
             pred, target = pred * keep, target * keep
         # Reflected borders need the half window below the image size: tiny renders get a smaller window.
         window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
-        return ((1.0 - ssim_map(pred, target, window)) / 2.0).mean()  # map [B, 3, H, W]
+        ssim = ssim_map(pred, target, window, compiled=None if self.compiled else False)  # [B, 3, H, W]
+        return ((1.0 - ssim) / 2.0).mean()
