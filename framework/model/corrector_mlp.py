@@ -18,6 +18,7 @@ from torch import Tensor, nn
 
 from framework.geometry import quat_multiply
 from framework.interfaces.corrector import Corrector
+from framework.model.narrow_linear import NarrowLinear
 from framework.types import Gaussians, num_sh_coeffs
 
 
@@ -89,7 +90,7 @@ class MLPCorrector(Corrector):
             raise ValueError(f"corrector.bind: num_pose_features must be positive, got {num_pose_features}.")
         self.num_pose_features = num_pose_features
         self.pose_in = nn.Linear(num_pose_features, self.hidden, bias=False)
-        self.feature_in = nn.Linear(self.feature_dim, self.hidden)
+        self.feature_in = NarrowLinear(self.feature_dim, self.hidden)  # 9 wide: its backward products reoriented
         trunk: list[nn.Module] = []
         for _ in range(self.num_layers - 2):
             # in place: the activation overwrites the product it follows (whose backward does not read it), so no
