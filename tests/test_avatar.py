@@ -262,9 +262,9 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monk
 
 
 def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
-    """With a `compiled_inference` backend (numba) a frame without gradients gets its view colour from the compiled
-    loop; with gradients, or with torch_ref, from the torch path. The frames agree to float32 rounding (SH of degree
-    1 with random coefficients, a posed avatar, so the skinning frames are not the identity)."""
+    """With a `compiled_inference` backend (numba) a frame gets its view colour from the compiled loops, without
+    gradients and with them (training); with torch_ref from the torch path. The frames agree to float32 rounding (SH
+    of degree 1 with random coefficients, a posed avatar, so the skinning frames are not the identity)."""
     import framework.splat.compiled_sh as compiled_sh
 
     avatar = _avatar(body)
@@ -278,12 +278,12 @@ def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
     with torch.no_grad():
         compiled_rgb = avatar(batch, sh_degree=1).render.rgb
     assert len(calls) == 1
-    grad_rgb = avatar(batch, sh_degree=1).render.rgb  # gradients on: the torch path
-    assert len(calls) == 1 and grad_rgb.requires_grad
+    grad_rgb = avatar(batch, sh_degree=1).render.rgb  # gradients on: compiled, with its backward
+    assert len(calls) == 2 and grad_rgb.requires_grad
     avatar.rasterizer = RASTERIZERS.build("torch_ref")
     with torch.no_grad():
         torch_rgb = avatar(batch, sh_degree=1).render.rgb
-    assert len(calls) == 1
+    assert len(calls) == 2
     assert float(torch_rgb.std()) > 0.01  # the avatar is in the picture
     torch.testing.assert_close(compiled_rgb, torch_rgb, atol=1e-4, rtol=0)
     torch.testing.assert_close(compiled_rgb, grad_rgb.detach(), atol=1e-4, rtol=0)

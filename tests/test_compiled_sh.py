@@ -71,3 +71,32 @@ def test_rasterizer_colours_match_torch_in_float64(degree: int) -> None:
     ref = sh_colors(degree, coeffs, means[None] - centres[:, None])
     assert (ref == 0).any() and (ref > 0).any()
     torch.testing.assert_close(torch.from_numpy(got), ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_gradients_match_torch_in_float64(degree: int) -> None:
+    """The training step's view colour: gradients to the coefficients (zero past the active bands), the directions
+    and the frames against autograd through `view_colour_dc`, a zero direction and one below NORM_EPS included."""
+    coeffs, dirs, frames = _inputs(200, F64)
+    dirs[2] = torch.tensor([3e-12, -4e-12, 0.0], dtype=F64)  # just above the floor: the normalised branch
+    ours = [t.clone().requires_grad_() for t in (coeffs, dirs, frames)]
+    ref = [t.clone().requires_grad_() for t in (coeffs, dirs, frames)]
+    out, expected = view_colour_dc_compiled(degree, *ours), view_colour_dc(degree, *ref)
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    proj = torch.randn(out.shape, generator=torch.Generator().manual_seed(degree), dtype=F64)
+    (out * proj).sum().backward()
+    (expected * proj).sum().backward()
+    for name, a, b in zip(("coeffs", "dirs", "frames"), ours, ref, strict=True):
+        if b.grad is None:  # degree 0: the colour does not depend on the direction
+            assert degree == 0 and bool((a.grad == 0).all()), name
+            continue
+        scale = float(b.grad.abs().max())
+        torch.testing.assert_close(a.grad, b.grad, rtol=1e-10, atol=1e-12 * max(scale, 1.0), msg=name)
+    assert bool((ours[0].grad[:, (degree + 1) ** 2 :] == 0).all())
+
+
+def test_gradcheck_through_every_band() -> None:
+    coeffs, dirs, frames = _inputs(6, F64)
+    dirs = dirs[2:]  # finite differences need a direction away from zero
+    inputs = tuple(t[: dirs.shape[0]].clone().requires_grad_() for t in (coeffs, dirs, frames[2:]))
+    assert torch.autograd.gradcheck(lambda c, d, r: view_colour_dc_compiled(3, c, d, r), inputs)

@@ -224,7 +224,7 @@ class Avatar(nn.Module):
 
     def _view_colour(self, posed: Gaussians, frames: Tensor, batch: FrameBatch, sh_degree: int) -> Tensor:
         """[N, 1, 3] DC coefficients holding each Gaussian's colour towards the one camera (framework.splat.sh);
-        compiled (`framework.splat.compiled_sh`) when the rasterizer renders compiled and no gradient is asked."""
+        compiled (`framework.splat.compiled_sh`, with its backward in training) when the rasterizer renders compiled."""
         centre = batch.cameras.centers().to(posed.means)  # [1, 3]
         dirs = posed.means - centre  # [N, 3]
         if self._compiles_view_colour(posed.sh, dirs, frames):
@@ -234,7 +234,10 @@ class Avatar(nn.Module):
         return view_colour_dc(sh_degree, posed.sh, dirs, frames)
 
     def _compiles_view_colour(self, sh: Tensor, dirs: Tensor, frames: Tensor) -> bool:
-        """Whether the view colour takes the compiled loop: a backend with `compiled_inference` (numba) that would
-        render these tensors compiled (CPU, float32/64, no gradient asked)."""
-        backend = self._rasterizer
-        return bool(getattr(backend, "compiled_inference", False)) and backend.compiled((sh, dirs, frames))
+        """Whether the view colour takes the compiled loops: a backend with `compiled_inference` (numba) that renders
+        these tensors compiled, without gradients (`compiled`) or with them (`compiled_with_gradients`: CPU float)."""
+        backend, tensors = self._rasterizer, (sh, dirs, frames)
+        if not getattr(backend, "compiled_inference", False):
+            return False
+        with_gradients = getattr(backend, "compiled_with_gradients", None)  # a plugin's backend may not have it
+        return bool(backend.compiled(tensors) or (with_gradients is not None and with_gradients(tensors)))

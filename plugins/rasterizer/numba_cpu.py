@@ -5,10 +5,11 @@ gradients: there projection, SH colours and compositing all run compiled. At the
 the eager rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the
 loops avoid it). A render whose inputs require gradients (training) runs `torch_ref`'s render with two steps replaced
 by compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
-compositing (`framework.splat.compiled_composite`). There the SH colours keep torch_ref's autograd code, and means2d
-is still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending weights are
-`torch_ref`'s. Inputs on another device run `torch_ref` itself; half-precision inputs are rendered in float32, as
-`torch_ref` does, through the same compiled steps.
+compositing (`framework.splat.compiled_composite`). There the rasterizer's SH colours keep torch_ref's autograd code
+(an avatar hands it degree 0: its view colour is compiled with its backward, `framework.splat.compiled_sh`), and
+means2d is still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending
+weights are `torch_ref`'s. Inputs on another device run `torch_ref` itself; half-precision inputs are rendered in
+float32, as `torch_ref` does, through the same compiled steps.
 
 An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
 (`framework.rig.compiled_skinning`, for LBS deformers with baked weights) and evaluates each Gaussian's colour
@@ -96,7 +97,8 @@ class NumbaRasterizer(Rasterizer):
     """torch_ref's contract; forward-only renders compiled whole, gradient renders with compiled projection and
     compositing (their backward passes compiled too)."""
 
-    #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`)
+    #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`),
+    #: and takes its view colour from compiled loops (`framework.splat.compiled_sh`, in training with their backward)
     compiled_inference = True
 
     def __init__(self) -> None:
@@ -109,6 +111,12 @@ class NumbaRasterizer(Rasterizer):
         if first.device.type != "cpu" or first.dtype not in (torch.float32, torch.float64):
             return False
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+    @staticmethod
+    def compiled_with_gradients(tensors: tuple[Tensor, ...]) -> bool:
+        """Whether a training render of these tensors runs its projection and compositing compiled: CPU, float32 or
+        float64 (an avatar then takes its view colour's compiled loops and their backward too)."""
+        return _compiled_here(tensors[0])
 
     def render(
         self,
