@@ -24,8 +24,9 @@ class DSSIMLoss(Loss):
     `foreground_only` (the paper's "only foreground" row) compares the two images with everything outside the human
     mask set to zero in both, so nothing rendered outside the mask changes the loss (SSIM of two zero patches is 1).
 
-    `compiled` (default) filters the moments of CPU images with the compiled loop of `framework.image.compiled_filter`;
-    false keeps kornia's depthwise convolutions (the same values to rounding; a benchmark switch).
+    `compiled` (default) computes the SSIM map of CPU images, forward and backward, with the compiled loops of
+    `framework.image.compiled_ssim`; false keeps kornia's filter and torch (the same values to rounding; a benchmark
+    switch).
     """
 
     def __init__(self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True) -> None:
