@@ -21,7 +21,7 @@ from numba import njit
 from torch import Tensor
 
 from framework.image.compiled_filter import filter_planes
-from framework.rig.compiled_threads import run_chunked
+from framework.rig.compiled_threads import cpu_float, run_chunked
 
 #: pixels (over an image plane's five moments) below which a chunk of planes is not worth a second thread
 MIN_PIXELS_PER_CHUNK = 32768
@@ -29,7 +29,7 @@ MIN_PIXELS_PER_CHUNK = 32768
 
 def applies(x: Tensor) -> bool:
     """Whether the compiled loops take x: a CPU float32 or float64 tensor (other devices keep kornia's)."""
-    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+    return cpu_float(x)
 
 
 @njit(cache=True, nogil=True)

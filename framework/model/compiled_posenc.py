@@ -23,6 +23,8 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from framework.rig.compiled_threads import cpu_float
+
 
 @njit(cache=True, nogil=True)
 def encode(x, sin0, cos0, num_freqs, out) -> None:
@@ -83,7 +85,7 @@ class _PosEnc(torch.autograd.Function):
 
 def applies(x: Tensor) -> bool:
     """Whether `posenc_compiled` takes x: a CPU float32 or float64 tensor (other devices keep torch's path)."""
-    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+    return cpu_float(x)
 
 
 def posenc_compiled(x: Tensor, num_freqs: int) -> Tensor:

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
+from framework.rig.compiled_threads import cpu_float
 from framework.rig.fold import fold_weights
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
 from framework.rig.sh_rotation import rotate_sh
@@ -138,12 +139,7 @@ class LBSDeformerBase(Deformer):
     def _weights_compiled(self, points: Tensor) -> bool:
         """Whether `smooth_weights` takes the compiled loops: switched on, CPU, float32/64, a partition-of-unity grid
         (the only kind `framework.rig.weight_field` builds from a body; other grids are clamped and renormalised)."""
-        return (
-            self.compiled_weights
-            and points.device.type == "cpu"
-            and points.dtype in (torch.float32, torch.float64)
-            and self.field.partition_of_unity
-        )
+        return self.compiled_weights and cpu_float(points) and self.field.partition_of_unity
 
     def _skins_compiled(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
         """Whether this call takes the compiled skinning: switched on, baked weights, CPU, no gradient asked."""
@@ -157,7 +153,7 @@ class LBSDeformerBase(Deformer):
         tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
         return (
             self.compiled_skinning
-            and all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
+            and all(cpu_float(t) for t in tensors)
             and torch.is_grad_enabled()
             and any(t.requires_grad for t in tensors)
         )

@@ -6,7 +6,7 @@ rate when torch orients them the default way. On a 2-core AVX-512 VM (MKL, 8000 
   when its output has the narrow side first;
 - the input gradient dY W ([8000, 128] x [128, 9]) 0.81 ms, and with W's 9 columns padded to 16 0.22 ms (the padded
   columns' outputs are dropped).
-F_a's forward+backward went from 15.0 to 13.9 ms (41 alternating rounds; 14.3 against 15.1 ms with the cache evicted
+F_a's forward+backward went from 15.4 to 14.6 ms (41 alternating rounds; 15.0 against 15.7 ms with the cache evicted
 in between). The forward stays torch's, so F_a's values are bit for bit nn.Linear's. F_dw keeps torch's layers: its
 56000-row products are bound by memory in a training step, and there the padded and reoriented ones were slower (1.9
 -> 2.5 ms for its input layer's weight gradient).

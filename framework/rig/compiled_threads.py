@@ -30,6 +30,12 @@ def _forget_pool() -> None:
 os.register_at_fork(after_in_child=_forget_pool)
 
 
+def cpu_float(t: torch.Tensor) -> bool:
+    """Whether the compiled loops read t as it is (a numpy view, no copy, no cast): a CPU float32 or float64 tensor.
+    The one test every compiled path asks before it takes over from torch."""
+    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
+
+
 def row_chunks(n: int, min_chunk: int | None = None) -> list[tuple[int, int]]:
     """[start, stop) ranges of n rows, one per thread torch may use, none shorter than min_chunk (default MIN_CHUNK;
     but at least one range)."""

@@ -174,6 +174,17 @@ def sh_colours_compiled(degree: int, coeffs: Tensor, means: Tensor, centres: Ten
     return out
 
 
+def _view_colour(
+    degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]]:
+    """The compiled forward on detached, contiguous copies in the coefficients' dtype -> [N, 1, 3] (and the inputs as
+    the loops read them, for a backward)."""
+    c, d, r = (t.detach().to(coeffs.dtype).contiguous() for t in (coeffs, dirs, frames))
+    out = c.new_empty(c.shape[0], 1, 3)
+    view_colour_dc_rows(degree, c.numpy(), d.numpy(), r.numpy(), 0, c.shape[0], out.numpy())
+    return out, (c, d, r)
+
+
 class _ViewColour(torch.autograd.Function):
     """(coeffs [N, K, 3], dirs [N, 3], frames [N, 3, 3]) -> [N, 1, 3], differentiable in all three (a training
     step's, on the CPU). One thread: at 8000 Gaussians, forward+backward took 0.44 + 0.77 ms on the calling thread
@@ -182,10 +193,8 @@ class _ViewColour(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, coeffs, dirs, frames, degree):  # type: ignore[override]
-        c, d, r = (t.detach().to(coeffs.dtype).contiguous() for t in (coeffs, dirs, frames))
-        out = c.new_empty(c.shape[0], 1, 3)
-        view_colour_dc_rows(degree, c.numpy(), d.numpy(), r.numpy(), 0, c.shape[0], out.numpy())
-        ctx.save_for_backward(c, d, r)
+        out, read = _view_colour(degree, coeffs, dirs, frames)
+        ctx.save_for_backward(*read)
         ctx.degree, ctx.dtypes = degree, (dirs.dtype, frames.dtype)
         return out
 
@@ -207,7 +216,4 @@ def view_colour_dc_compiled(degree: int, coeffs: Tensor, dirs: Tensor, frames: T
     _check(degree, coeffs)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (coeffs, dirs, frames)):
         return _ViewColour.apply(coeffs, dirs, frames, degree)
-    c, d, r = (t.detach().contiguous().numpy() for t in (coeffs, dirs.to(coeffs.dtype), frames.to(coeffs.dtype)))
-    out = np.empty((c.shape[0], 1, 3), dtype=c.dtype)
-    view_colour_dc_rows(degree, c, d, r, 0, c.shape[0], out)
-    return torch.from_numpy(out)
+    return _view_colour(degree, coeffs, dirs, frames)[0]

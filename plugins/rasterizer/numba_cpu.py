@@ -29,14 +29,10 @@ from torch import Tensor
 
 from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
 from framework.registry import register
+from framework.rig.compiled_threads import cpu_float
 from framework.splat.projection import Projection
 from framework.types import BlendWeights, Cameras, RenderOutput
 from plugins.rasterizer.torch_ref import TorchRefRasterizer
-
-
-def _compiled_here(t: Tensor) -> bool:
-    """Whether a training render of this tensor runs the compiled loops: on the CPU, in float32 or float64."""
-    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
 
 
 class _CompiledTraining(TorchRefRasterizer):
@@ -56,7 +52,7 @@ class _CompiledTraining(TorchRefRasterizer):
         near: float,
         far: float,
     ) -> Projection:
-        if not _compiled_here(means) or K.requires_grad or world_to_cam.requires_grad:
+        if not cpu_float(means) or K.requires_grad or world_to_cam.requires_grad:
             return super().project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far)
         from framework.splat.compiled_projection import project_compiled  # lazy: numba's import (module docstring)
 
@@ -75,7 +71,7 @@ class _CompiledTraining(TorchRefRasterizer):
         width: int,
         height: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        if not _compiled_here(means2d):
+        if not cpu_float(means2d):
             return super().composite_entries(means2d, conics, opacities, colors, depths, cam, half, num_cameras,
                                              width, height)  # fmt: skip
         from framework.splat.compiled_composite import CompiledComposite  # lazy: numba's import (module docstring)
@@ -108,7 +104,7 @@ class NumbaRasterizer(Rasterizer):
     def compiled(tensors: tuple[Tensor, ...]) -> bool:
         """Whether a render of these tensors runs the compiled loops: CPU, float32 or float64, no gradient asked."""
         first = tensors[0]
-        if first.device.type != "cpu" or first.dtype not in (torch.float32, torch.float64):
+        if not cpu_float(first):
             return False
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
@@ -116,7 +112,7 @@ class NumbaRasterizer(Rasterizer):
     def compiled_with_gradients(tensors: tuple[Tensor, ...]) -> bool:
         """Whether a training render of these tensors runs its projection and compositing compiled: CPU, float32 or
         float64 (an avatar then takes its view colour's compiled loops and their backward too)."""
-        return _compiled_here(tensors[0])
+        return cpu_float(tensors[0])
 
     def render(
         self,
