@@ -183,6 +183,8 @@ class FakeGsplat:
     def __call__(self, means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw):
         self.calls.append({"args": (means, quats, scales, opacities, colors, viewmats, Ks, width, height), **kw})
         N, C = means.shape[-2], viewmats.shape[-3]
+        # gsplat 1.5.3's projection computes means.numel() / (N * 3) on the host: N = 0 is SIGFPE (seen on an H200)
+        assert N > 0, "gsplat 1.5.3 kills the process (SIGFPE) on a scene with no Gaussians"
         assert means.shape == (N, 3), means.shape
         assert quats.shape == (N, 4), quats.shape
         assert scales.shape == (N, 3), scales.shape
@@ -378,6 +380,23 @@ def test_inputs_reach_gsplat_contiguous(fake):
     cams = Cameras(cams.K[:1].expand(2, 3, 3), cams.world_to_cam, cams.width, cams.height)
     GsplatRasterizer().render(*params, cams, sh_degree=3)
     assert all(a.is_contiguous() for a in fake.calls[0]["args"][:7])
+
+
+def test_scene_without_gaussians_renders_the_background_and_back_propagates(device):
+    """N = 0 never reaches gsplat (FakeGsplat refuses it as gsplat 1.5.3's SIGFPE would): the image is the
+    background, alpha and depth are 0, and a loss over the outputs back-propagates to empty gradients."""
+    _, cams = make_scene(n=1, device=device)
+    ps = [torch.zeros(*shape, device=device, requires_grad=True) for shape in ((0, 3), (0, 4), (0, 3), (0,), (0, 4, 3))]
+    bg = torch.tensor([0.3, 0.5, 0.7], device=device)
+    out = GsplatRasterizer().render(*ps, cams, sh_degree=1, background=bg)
+    C, H, W = cams.num, cams.height, cams.width
+    assert torch.equal(out.rgb.detach(), bg.expand(C, H, W, 3))
+    assert float(out.alpha.detach().abs().max()) == 0.0 and float(out.depth.detach().abs().max()) == 0.0
+    assert out.means2d.shape == (C, 0, 2) and out.radii.shape == (C, 0)
+    _loss(out, H, W).backward()
+    assert all(p.grad is not None and p.grad.shape == p.shape for p in ps)
+    black = GsplatRasterizer().render(*[p.detach() for p in ps], cams, sh_degree=1)
+    assert float(black.rgb.abs().max()) == 0.0
 
 
 def test_float64_inputs_are_passed_as_float32_and_cast_back(fake):

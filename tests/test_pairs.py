@@ -77,3 +77,20 @@ def test_row_bands_one_band_only_when_the_boxes_fit_the_budget() -> None:
             if len(bands) == 1:
                 assert count <= budget or budget == count * 4 + 1000, (trial, count, budget)
         assert len(row_bands(m, h, W, H, max_pairs=max(1, count // 4))) > 1 or count == 0
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_row_bands_plan_on_the_gaussians_device() -> None:
+    """The band planner keeps its counters on the Gaussians' device: CUDA boxes give the bands CPU boxes give (a
+    CPU-only counter failed torch_ref at 200k Gaussians at 512 px on an H200, the first render large enough to need
+    bands)."""
+    from framework.splat.bands import row_bands
+
+    g = torch.Generator().manual_seed(5)
+    W, H = 64, 48
+    m = torch.rand(200, 2, generator=g) * torch.tensor([W, H])
+    h = torch.rand(200, 2, generator=g) * 8
+    cpu = row_bands(m, h, W, H, max_pairs=500)
+    assert len(cpu) > 1
+    assert row_bands(m.cuda(), h.cuda(), W, H, max_pairs=500) == cpu

@@ -47,14 +47,14 @@ def row_bands(
         cols = (x1 - x0).clamp_min(0)
         if float((cols * (y1 - y0).clamp_min(0)).sum()) <= budget:
             return [(0, height)]
-        per_row = torch.zeros(height + 1, dtype=torch.float64)
+        per_row = torch.zeros(height + 1, dtype=torch.float64, device=m.device)  # on the Gaussians' device
         per_row.index_add_(0, y0, cols)
         per_row.index_add_(0, y1, -cols)
         cum = torch.cat([per_row.new_zeros(1), torch.cumsum(torch.cumsum(per_row, 0)[:height], 0)])  # [H + 1]
         rows = 1
         for k in range(2, height + 1):  # fewest bands first; ~2 sqrt(H) distinct heights to try
             rows = -(-height // k)
-            starts = torch.arange(0, height, rows)
+            starts = torch.arange(0, height, rows, device=cum.device)
             if float((cum[(starts + rows).clamp_max(height)] - cum[starts]).max()) <= budget:
                 break
     return [(r0, min(r0 + rows, height)) for r0 in range(0, height, rows)]

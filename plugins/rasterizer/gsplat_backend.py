@@ -113,6 +113,27 @@ def inward_planes(near: float, far: float) -> tuple[float, float]:
     return float(near_in), float(far_in)
 
 
+def _empty_render(
+    inputs: list[Tensor], C: int, H: int, W: int, bg: Tensor | None, out_dtype: torch.dtype
+) -> RenderOutput:
+    """What a scene with no Gaussians renders to: the background, zero alpha and depth, no screen rows.
+
+    gsplat 1.5.3 is never called with N = 0: its projection divides by N on the host (`means.numel() / (N * 3)` in
+    `fully_fused_projection`), which killed the process with SIGFPE on an H200. The outputs hang on the inputs
+    through a zero sum, so a loss over them back-propagates (zero, empty gradients) as with any other scene."""
+    zero = sum(x.sum() for x in inputs) * 0.0  # [] 0, in the inputs' graph
+    dev = inputs[0].device
+    rgb = torch.zeros(C, H, W, 3, device=dev) if bg is None else bg[:, None, None, :].expand(C, H, W, 3)
+    flat = torch.zeros(C, H, W, 1, device=dev)
+    return RenderOutput(
+        rgb=(rgb + zero).to(out_dtype),  # [C, H, W, 3]
+        alpha=(flat + zero).to(out_dtype),  # [C, H, W, 1]
+        depth=(flat + zero).to(out_dtype),  # [C, H, W, 1]
+        means2d=torch.zeros(C, 0, 2, device=dev),  # [C, 0, 2]
+        radii=torch.zeros(C, 0, dtype=torch.int32, device=dev),  # [C, 0]
+    )
+
+
 @register("rasterizer", "gsplat", requires=gsplat_unavailable)
 class GsplatRasterizer(Rasterizer):
     """gsplat's tiled CUDA rasterizer. `absgrad=True` also fills `means2d.absgrad` (AbsGS densification)."""
@@ -152,6 +173,8 @@ class GsplatRasterizer(Rasterizer):
         bg = None
         if background is not None:
             bg = background.to(dev, torch.float32).reshape(1, 3).expand(C, 3).contiguous()  # [C, 3]
+        if N == 0:
+            return _empty_render(f32, C, H, W, bg, out_dtype)
         near_in, far_in = inward_planes(near, far)
         colors, alphas, info = rasterization(
             f32[0],
