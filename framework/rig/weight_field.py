@@ -32,7 +32,7 @@ from framework.guards import WEIGHT_FIELD_NAN_NODE, WEIGHT_PARTITION_TOL, WEIGHT
 from framework.paths import cache_dir
 from framework.rig.closest_point import closest_points
 
-_CACHE_VERSION = "1"
+_CACHE_VERSION = "2"  # 2: closest triangles from libigl (ties on shared edges may pick the other face)
 
 
 def _np(x) -> np.ndarray:
