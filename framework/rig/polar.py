@@ -98,6 +98,24 @@ def _rotation_newton(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor) -> Tens
     return X
 
 
+def _finite_or_identity(X: Tensor) -> Tensor:
+    """X [9, M] with every matrix holding a NaN or inf entry replaced by the identity."""
+    if bool(torch.isfinite(X.sum())):  # one reduction: NaN and inf propagate (an overflow only costs the check)
+        return X
+    eye = torch.eye(3, dtype=X.dtype, device=X.device).reshape(9, 1)
+    return torch.where(torch.isfinite(X).all(0), X, eye)
+
+
+def _newton_inputs(X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cofactors [9, M], determinants [M], squared norms [M] of X [9, M], and which matrices Newton may take [M]:
+    det > tol * scale^3 (well-conditioned, det > 0)."""
+    C = _cofactors(X)  # [9, M]
+    det = (X[:3] * C[:3]).sum(0)  # [M]
+    norm_sq = X.square().sum(0)  # [M]
+    mean_sq = norm_sq / 3
+    return C, det, norm_sq, det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()
+
+
 @torch.no_grad()
 def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
     """Rotation factor of A [..., 3, 3] (values only), returned in A's dtype.
@@ -121,18 +139,15 @@ def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dt
     Xc = X.to(torch.float64 if method == "svd" else compute).contiguous()  # [9, M]
     if M == 0:
         return torch.empty_like(X)
-    if not bool(torch.isfinite(Xc.sum())):  # one reduction: NaN and inf propagate (an overflow only costs the check)
-        eye = torch.eye(3, dtype=Xc.dtype, device=Xc.device).reshape(9, 1)
-        Xc = torch.where(torch.isfinite(Xc).all(0), Xc, eye)
     if method == "svd":
-        return _rotation_svd(Xc.t().reshape(-1, 3, 3)).reshape(M, 9).t().to(out_dtype)
-    C = _cofactors(Xc)  # [9, M]
-    det = (Xc[:3] * C[:3]).sum(0)  # [M]
-    norm_sq = Xc.square().sum(0)  # [M]
-    mean_sq = norm_sq / 3
-    good = det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()  # det > tol * scale^3
-    if bool(good.all()):  # the common case: one pass, no boolean indexing
+        return _rotation_svd(_finite_or_identity(Xc).t().reshape(-1, 3, 3)).reshape(M, 9).t().to(out_dtype)
+    C, det, norm_sq, good = _newton_inputs(Xc)
+    # The common case, one host sync: `good` is False for any matrix with a NaN or inf entry, or whose squares
+    # overflow (its det or scale is then NaN or inf), so all-good also means all finite.
+    if bool(good.all()):
         return _rotation_newton(Xc, C, det, norm_sq).to(out_dtype)
+    Xc = _finite_or_identity(Xc)
+    C, det, norm_sq, good = _newton_inputs(Xc)
     R = torch.empty_like(Xc)
     if good.any():
         R[:, good] = _rotation_newton(Xc[:, good], C[:, good], det[good], norm_sq[good])

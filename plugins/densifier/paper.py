@@ -147,9 +147,12 @@ class PaperDensifier(Densifier):
         grad[..., 1] *= info["height"] / 2.0 * n_cams
         radii = info["radii"]
         visible = (radii > 0).all(dim=-1) if radii.dim() == 3 else radii > 0  # [C, N]
-        cam_idx, gs_idx = torch.nonzero(visible, as_tuple=True)
-        state["grad2d"].index_add_(0, gs_idx, grad[cam_idx, gs_idx].norm(dim=-1))
-        state["count"].index_add_(0, gs_idx, torch.ones_like(gs_idx, dtype=state["count"].dtype))
+        # Masked sums over the cameras rather than indexing the visible pairs: no data-dependent shape, so no host
+        # sync on a GPU (boolean indexing waits for the count). Culled rows add an exact 0 (`where`, not a product, so
+        # a non-finite gradient in a row gsplat never wrote cannot leak in).
+        norms = torch.where(visible, grad.norm(dim=-1), 0.0)  # [C, N]
+        state["grad2d"] += norms.sum(0) if norms.shape[0] > 1 else norms[0]
+        state["count"] += visible.sum(0, dtype=state["count"].dtype)
 
     def grow(self, params: dict[str, nn.Parameter], optimizers, state: dict[str, Any]) -> tuple[int, int]:
         n = params["means"].shape[0]

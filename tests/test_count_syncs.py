@@ -1,0 +1,48 @@
+"""tools/count_syncs.py's counter: each operator that makes a GPU host wait is counted once per call, at the line of
+our code that made it, and nothing else is counted."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import torch
+
+
+def _tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "count_syncs.py"
+    spec = importlib.util.spec_from_file_location("count_syncs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_counter_counts_each_sync_once_and_nothing_else() -> None:
+    tool = _tool()
+    from framework.rig.polar import polar_rotation_values
+
+    counter = tool.SyncCounter()
+    counter.step = 0
+    x = torch.randn(50, 3)
+    mask = x[:, 0] > 0
+    with counter:
+        y = (x * 2 + 1).sum(0).exp()  # no sync: arithmetic and reductions stay on the device
+        float(y[0])  # 1 item
+        x[mask]  # 1 boolean index
+        torch.nonzero(mask)  # 1 nonzero
+        torch.repeat_interleave(torch.tensor([1, 2]))  # 1 repeat_interleave (no output size)
+        torch.repeat_interleave(torch.tensor([1, 2]), output_size=3)  # none: the size is given
+        A = torch.eye(3).expand(4, 3, 3) + 0.01 * torch.randn(4, 3, 3)
+        polar_rotation_values(A)  # well-conditioned: one check, then the Newton loop's own
+        counter.step = None
+        float(y[1])  # outside a counted step
+    by_kind = {}
+    for (kind, _site), c in counter.counts.items():
+        by_kind.setdefault(kind, 0)
+        by_kind[kind] += c
+    assert by_kind["boolean index"] == 1 and by_kind["nonzero"] == 1 and by_kind["repeat_interleave"] == 1
+    polar_sites = {s: c for (k, s), c in counter.counts.items() if "framework/rig/polar.py" in s}
+    newton = sum(c for s, c in polar_sites.items() if "_rotation_newton" in s)
+    entry = sum(c for s, c in polar_sites.items() if "_polar_values_entry_major" in s)
+    assert entry == 1 and newton >= 1  # the all-good test is the only sync before the loop
+    assert by_kind["item / float / bool"] == 1 + entry + newton  # float(y[0]); float(y[1]) was not counted

@@ -1,0 +1,158 @@
+"""Host-device synchronisations per training step: where the host would wait for a GPU, counted on any machine.
+
+    python tools/count_syncs.py                                    # paper_full, CPU profile, the GPU's code path
+    python tools/count_syncs.py --steps 60 --native -- rasterizer=numba   # the path this machine itself runs
+
+On a GPU every `.item()`, `float(t)`, `bool(t)`, boolean index, `nonzero` or `repeat_interleave` without an output
+size makes the host wait until the device has finished all queued work, so the host can no longer run ahead and
+queue the next kernels while the device computes: a step then costs host time plus device time instead of the larger
+of the two. This tool runs `framework.train.run` (the real training, as `tools/bench_train.py` does) under a
+TorchDispatchMode that counts those operators and names the innermost framework/plugins line that called each, per
+training step (the first `--warmup` steps of each stage left out).
+
+By default the compiled CPU kernels are switched off (`framework.rig.compiled_threads.cpu_float` answers False), so a
+CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
+polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
+accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
+from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On a CUDA machine,
+`torch.cuda.set_sync_debug_mode("warn")` reports the same events as they happen.
+"""
+
+from __future__ import annotations  # noqa: I001  (framework.train is imported before torch on purpose)
+
+import argparse
+import sys
+import traceback
+from collections import Counter
+
+import framework.train as train_entry  # first: it sets the OpenMP thread policy before torch is imported
+
+import torch  # noqa: E402  (after framework.train on purpose)
+from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
+
+aten = torch.ops.aten
+#: operators whose result the host needs (a value, or an output size that depends on the data)
+SYNC_OPS = {
+    aten._local_scalar_dense.default: "item / float / bool",
+    aten.nonzero.default: "nonzero",
+    aten.masked_select.default: "masked_select",
+    aten.equal.default: "equal",
+    aten.is_nonzero.default: "is_nonzero",
+    aten._unique2.default: "unique",
+    aten.unique_dim.default: "unique",
+    aten.repeat_interleave.Tensor: "repeat_interleave",
+}
+RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
+
+
+def _site() -> str:
+    """The innermost frame of our own code on the stack, 'path:line function', and the library frame that made the
+    call when it was not ours (Lightning's logging, say)."""
+    stack = [f for f in traceback.extract_stack()[:-2] if "/tools/count_syncs.py" not in f.filename.replace("\\", "/")]
+    stack = [f for f in stack if "/torch/utils/_python_dispatch" not in f.filename and "/torch/_ops" not in f.filename]
+    caller = None
+    for frame in reversed(stack):
+        name = frame.filename.replace("\\", "/")
+        for root in ("/framework/", "/plugins/"):
+            if root in name:
+                own = f"{root.strip('/')}/{name.split(root, 1)[1]}:{frame.lineno} {frame.name}"
+                return own if caller is None else f"{caller} (via {own})"
+        if caller is None and "/torch/" not in name:
+            tail = name.split("site-packages/", 1)[-1]
+            caller = f"{tail}:{frame.lineno} {frame.name}"
+    return caller or "(outside framework/ and plugins/)"
+
+
+class SyncCounter(TorchDispatchMode):
+    """Counts host-sync operators by (kind, site) for the step in `self.step` (None: outside counted steps)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.step: int | None = None
+        self.counts: Counter[tuple[str, str]] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kind = SYNC_OPS.get(func)
+        if func is aten.index.Tensor and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else []) or []
+        ):
+            kind = "boolean index"
+        if func is aten.repeat_interleave.Tensor and (kwargs or {}).get("output_size") is not None:
+            kind = None  # the output size is given: nothing to wait for
+        if kind is not None and self.step is not None:
+            self.counts[(kind, _site())] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def _accelerator_path() -> None:
+    """Every compiled CPU path off: the modules that imported `cpu_float` by name get the patched test too."""
+    import framework.rig.compiled_threads as threads
+
+    def never(*_args, **_kwargs) -> bool:
+        return False
+
+    threads.cpu_float = never
+    for name, module in list(sys.modules.items()):
+        if name.startswith(("framework", "plugins")) and getattr(module, "cpu_float", None) is not None:
+            module.cpu_float = never
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--experiment", default="paper_full")
+    ap.add_argument("--profile", default="cpu")
+    ap.add_argument("--steps", type=int, default=40, help="training steps; the stage switch is forced halfway")
+    ap.add_argument("--warmup", type=int, default=3, help="steps left out at the start of each stage")
+    ap.add_argument("--native", action="store_true", help="keep this machine's compiled CPU paths")
+    ap.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
+    args = ap.parse_args(argv)
+    if args.steps < 2 * (args.warmup + 1):
+        ap.error(f"--steps must be at least 2 x (warmup + 1) = {2 * (args.warmup + 1)}")
+    import tempfile
+
+    from hydra import compose, initialize_config_module
+
+    from framework.plugins import load_plugins
+
+    load_plugins()
+    if not args.native:
+        _accelerator_path()
+    import framework.lightning.module as module_mod
+
+    counter = SyncCounter()
+    switch = args.steps // 2
+    counted = [s for s in range(args.steps) if args.warmup <= s < switch or s >= switch + args.warmup]
+    cls = module_mod.SplatModule
+    original = cls.training_step
+
+    def training_step(self, batch, batch_idx):
+        counter.step = int(self.global_step) if int(self.global_step) in counted else None
+        return original(self, batch, batch_idx)
+
+    cls.training_step = training_step
+    out = tempfile.mkdtemp(prefix="count_syncs_")
+    overrides = [f"+experiment={args.experiment}", f"profile={args.profile}", f"trainer.max_steps={args.steps}",
+                 f"stages.stage1_steps={switch}", "eval.after_fit=false", "trainer.val_every=1000000",
+                 f"paths.output_dir={out}", *args.overrides]  # fmt: skip
+    with initialize_config_module(config_module="framework.conf", version_base=None):
+        cfg = compose(config_name="train", overrides=overrides)
+    try:
+        with counter:
+            train_entry.run(cfg, overrides=overrides)
+    finally:
+        cls.training_step = original
+    n = len(counted)
+    path = "this machine's own" if args.native else "the accelerator's (compiled CPU kernels off)"
+    print(f"\n{args.experiment}, profile {args.profile}, {path} code path: host syncs per step, mean over {n} steps")
+    print(f"(steps {args.warmup}-{switch - 1} of stage 1 and {switch + args.warmup}-{args.steps - 1} of stage 2)\n")
+    print("| per step | operator | where |\n|---|---|---|")
+    rows = sorted(counter.counts.items(), key=lambda kv: (kv[0][1].startswith(RASTERIZER_FILES), -kv[1], kv[0]))
+    for (kind, site), count in rows:
+        note = " (rasterizer: torch_ref's own)" if site.startswith(RASTERIZER_FILES) else ""
+        print(f"| {count / n:.2f} | {kind} | `{site}`{note} |")
+    outside = sum(c for (_, s), c in counter.counts.items() if not s.startswith(RASTERIZER_FILES)) / n
+    print(f"\noutside the rasterizer: {outside:.2f} per step")
+
+
+if __name__ == "__main__":
+    main()
