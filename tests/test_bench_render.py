@@ -3,11 +3,9 @@ count F_a's arithmetic right."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
+from tool_module import load_tool
 
 from framework.cameras import orbit_cameras
 from framework.plugins import load_plugins
@@ -17,11 +15,7 @@ load_plugins()
 
 @pytest.fixture(scope="module")
 def tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "bench_render.py"
-    spec = importlib.util.spec_from_file_location("bench_render", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_render")
 
 
 @pytest.fixture(scope="module")

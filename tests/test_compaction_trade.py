@@ -4,22 +4,15 @@ compared with itself reads 0 dB, and the settings it cannot parse fail with one 
 from __future__ import annotations
 
 import csv
-import importlib.util
-import sys
-from pathlib import Path
 
 import pytest
 import torch
+from tool_module import load_tool
 
 
 @pytest.fixture(scope="module")
 def tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "compaction_trade.py"
-    spec = importlib.util.spec_from_file_location("compaction_trade", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclass resolves annotations through sys.modules
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("compaction_trade")
 
 
 def test_settings_parse_as_yaml_values_and_unknown_keys_are_refused(tool):

@@ -3,22 +3,12 @@ our code that made it, and nothing else is counted."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import torch
-
-
-def _tool():
-    path = Path(__file__).resolve().parents[1] / "tools" / "count_syncs.py"
-    spec = importlib.util.spec_from_file_location("count_syncs", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from tool_module import load_tool
 
 
 def test_counter_counts_each_sync_once_and_nothing_else() -> None:
-    tool = _tool()
+    tool = load_tool("count_syncs")
     from framework.rig.polar import polar_rotation_values
 
     counter = tool.SyncCounter()

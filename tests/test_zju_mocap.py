@@ -359,13 +359,10 @@ def test_bad_missing_params(tmp_path: Path) -> None:
 
 
 def test_preview_tool_writes_picture(tmp_path: Path, body: ProceduralBody) -> None:
-    import importlib.util
+    from tool_module import load_tool
 
     write_body_sequence(tmp_path / "seq", body, C=4, F=1, size=96)
-    path = Path(__file__).resolve().parents[1] / "tools" / "preview_sequence.py"
-    spec = importlib.util.spec_from_file_location("preview_sequence", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_tool("preview_sequence")
     out = tmp_path / "prev.png"
     assert mod.main(["--root", str(tmp_path / "seq"), "--frame", "0", "--out", str(out)]) == 0
     img = cv2.imread(str(out))
