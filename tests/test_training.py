@@ -104,6 +104,20 @@ def test_a_static_fit_compacts_and_refits(whole_run, tmp_path: Path, monkeypatch
     assert refit.after.psnr["novel_view"] > plain.after.psnr["novel_view"]
 
 
+def test_loader_processes_train_exactly_as_the_main_process(tmp_path: Path, whole_run):
+    """Frames decoded by DataLoader processes (the GPU profile's `loader_workers`) arrive in the order the step
+    sampler draws them, so the run ends with the same parameters, bit for bit, as the one decoding in-process."""
+    whole = whole_run[0]
+    proc = _train(tmp_path, "trainer.max_steps=60", "data_loader.num_workers=2", cache=whole / "cache")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = _load(_run_dirs(tmp_path)[-1] / "checkpoints" / "last.ckpt")["state_dict"]
+    want = _load(_run_dirs(whole)[-1] / "checkpoints" / "last.ckpt")["state_dict"]
+    assert got.keys() == want.keys()
+    assert want["avatar.gaussians.params.means"].shape[0] != 400, "the reference densified"
+    for key, value in want.items():
+        assert torch.equal(got[key], value), key
+
+
 def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run(tmp_path: Path, whole_run):
     """A run killed while it writes the step-30 checkpoint keeps the step-20 one loadable; resumed, it continues the
     step count, the optimizer's and the densifier's state and the random streams, and ends where an uninterrupted
