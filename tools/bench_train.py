@@ -16,7 +16,9 @@ loss term, backward, the optimizer, the densifier, `self.log`, the callbacks); w
 own loop. Rows are exclusive, so their means add up to the mean step exactly; the table also checks that the sum of
 the rows' medians is within 10 % of the median step. Each row shows wall ms / process CPU ms (all threads; CPU ms
 above wall ms means more than one core was busy); "cores" is CPU time / wall time over the step (DataLoader worker
-processes included). Warm-up steps at the start of each stage are dropped.
+processes included). Warm-up steps at the start of each stage are dropped. On a CUDA device every section boundary
+synchronises (`--sections-sync auto`), so each row holds the kernels it queued and the step is the sum of host and
+device time with no overlap; `--sections-sync off` times the step as training runs it (rows then show launch time).
 
 In the same run, the Gaussians, camera and SH degree of the last stage-2 step are rendered by an eager `torch_ref`
 forward+backward (L1 to a fixed image + mean alpha, as `tools/bench_rasterizers.py`), so the ratio step / rasterizer
@@ -122,17 +124,34 @@ def _rss_mb() -> float:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def device_sync_for(device: torch.device, mode: str) -> Callable[[], None] | None:
+    """The synchronisation the section clock runs before each reading: CUDA's under `auto` or `on`, none on a CPU
+    (nothing there runs asynchronously) or under `off`."""
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"--sections-sync must be auto, on or off, got '{mode}'")
+    if mode == "off" or device.type != "cuda":
+        return None
+    return torch.cuda.synchronize
+
+
 class Clock:
-    """Charges every moment of wall and process CPU time to the innermost active section (a stack of labels)."""
+    """Charges every moment of wall and process CPU time to the innermost active section (a stack of labels).
+
+    `device_sync` (set at train start on a CUDA device unless `--sections-sync off`) runs before each reading, so a
+    section's time includes the device work it queued: without it, kernels run after their section returns and their
+    time lands wherever the host next waits."""
 
     def __init__(self) -> None:
         self.stack = [UNATTRIBUTED]
         self.wall: dict[str, float] = defaultdict(float)
         self.cpu: dict[str, float] = defaultdict(float)
+        self.device_sync: Callable[[], None] | None = None
         self._t = time.perf_counter()
         self._c = time.process_time()
 
     def _charge(self) -> None:
+        if self.device_sync is not None:
+            self.device_sync()
         t, c = time.perf_counter(), time.process_time()
         top = self.stack[-1]
         self.wall[top] += t - self._t
@@ -206,9 +225,17 @@ class Instrument:
     """Installs the timers on a freshly built module at train start, and records one StepRecord per step."""
 
     def __init__(
-        self, clock: Clock, result: VariantResult, switch_step: int, sh_stage2: int, trace: int = 0, warmup: int = 0
+        self,
+        clock: Clock,
+        result: VariantResult,
+        switch_step: int,
+        sh_stage2: int,
+        trace: int = 0,
+        warmup: int = 0,
+        sections_sync: str = "auto",
     ) -> None:
         self.clock, self.result = clock, result
+        self.sections_sync = sections_sync
         self.trace, self.warmup = trace, warmup
         self.profiler: Any = None
         self.started = time.perf_counter()
@@ -222,6 +249,7 @@ class Instrument:
     # -- installation ------------------------------------------------------------------------------------------------
     def install(self, trainer: Any, module: Any) -> None:
         c = self.clock
+        c.device_sync = device_sync_for(module.device, self.sections_sync)
         avatar = module.avatar
         avatar.bone_transforms = c.wrap("pose / FK (pose refiner + body)", avatar.bone_transforms)
         c.hook_module("corrector F_a", avatar.corrector)
@@ -393,7 +421,7 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
     cfg.paths.output_dir = tmp
     splits.data_cfg = cfg.data
     clock = Clock()
-    inst = Instrument(clock, result, switch, args.stage2_sh_degree, args.trace, args.warmup)
+    inst = Instrument(clock, result, switch, args.stage2_sh_degree, args.trace, args.warmup, args.sections_sync)
     import lightning as L
 
     real_trainer = L.Trainer
@@ -638,6 +666,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=1, help="run the variant list this many times, interleaved")
     ap.add_argument("--stage2-sh-degree", type=int, default=-1, help="-1: the config's maximum SH degree")
     ap.add_argument("--raster-repeats", type=int, default=10)
+    ap.add_argument("--sections-sync", choices=("auto", "on", "off"), default="auto",
+                    help="synchronise a CUDA device at every section boundary (auto: on CUDA) so each row holds its "
+                         "own kernels; off measures the unsynchronised step (host and device overlapping)")  # fmt: skip
     ap.add_argument("--cold-data", action="store_true", help="do not decode the dataset's images before timing")
     ap.add_argument("--json", default=None, help="write every step's timings here")
     ap.add_argument("--trace", type=int, default=0, metavar="K",
@@ -685,7 +716,8 @@ def main(argv: list[str] | None = None) -> int:
         f"(stage switch at {args.steps // 2}, first {args.warmup} steps of each stage dropped); torch "
         f"{torch.__version__}, {threads} threads, OMP_WAIT_POLICY="
         f"{os.environ.get('OMP_WAIT_POLICY', '(unset)')}, {os.cpu_count()} CPUs ({platform.processor() or 'cpu'}), "
-        f"load average {load0[0]:.1f} -> {load1[0]:.1f}; process peak RSS "
+        f"load average {load0[0]:.1f} -> {load1[0]:.1f}; sections synchronised with the device: {args.sections_sync} "
+        f"(auto: on a CUDA device); process peak RSS "
         f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
     )
     print("\n" + header + "\n")
