@@ -214,6 +214,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     fit_started, fit_cpu = time.perf_counter(), time.process_time()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
     train_seconds, train_cpu_seconds = time.perf_counter() - fit_started, time.process_time() - fit_cpu
+    # Lightning's teardown moved the module to the CPU: bake, evaluate and time it on the device it trained on
+    module.to(trainer.strategy.root_device)
     train_stats = write_train_stats(out_dir / "train_stats.json", train_seconds, trainer.global_step,
                                     module.avatar.gaussians.num)  # fmt: skip
     trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period

@@ -295,3 +295,24 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
         assert float(err.max()) <= 1.0 / 255.0 and float((err > 2e-5).float().mean()) <= 1e-3
     fps = interleaved_fps({"final": ckpts / "final.ckpt"}, warmup=1, repeats=2, rounds=1, rasterizer="numba")
     assert fps["final"][0] > 0 and fps["final"][1] > 0
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_gpu_training_resumes_rolls_back_and_evaluates_on_the_device(tmp_path: Path):
+    """On CUDA: the after-fit evaluation and frame timing run on the GPU (Lightning's teardown moves the module to the
+    CPU), a resumed run densifies with its restored statistics (loaded on the CPU before the module moves), and a
+    rollback restores the CUDA random state (a CPU byte tensor, from a checkpoint loaded onto the GPU)."""
+    first = tmp_path / "first"
+    proc = _train(first, "trainer.max_steps=30")  # accelerator auto: the GPU
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = _run_dirs(first)[-1]
+    record = json.loads((run / "results.json").read_text())
+    assert record["render_fps"]["device"].startswith("cuda"), record["render_fps"]
+    proc = _train(first, "trainer.max_steps=45", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rolled = tmp_path / "rolled"
+    proc = _train(rolled, "trainer.max_steps=40", "divergence.action=rollback",
+                  "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}", faults={})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert any("rolled back" in line for line in proc.stderr.splitlines()), proc.stderr[-3000:]

@@ -151,7 +151,7 @@ def corrected_canonical(package: AnimatablePackage, frame: int) -> Gaussians:
     g = package.canonical
     if package.corrections is None:
         return g
-    c = {k: torch.from_numpy(np.asarray(v[frame])) for k, v in package.corrections.items()}
+    c = {k: torch.from_numpy(np.asarray(v[frame])).to(g.means.device) for k, v in package.corrections.items()}
     sh_c = c["corrected_sh"]  # [N, Kc, 3]
     sh = torch.cat([sh_c, g.sh[:, sh_c.shape[1] :]], dim=1)
     return g.replace(opacity_logits=c["corrected_opacity_logits"], log_scales=c["corrected_log_scales"],
@@ -164,6 +164,7 @@ def pose_frame(package: AnimatablePackage, frame: int) -> Gaussians:
 
     if not 0 <= frame < package.num_frames:
         raise PackageError(f"frame {frame} is outside the package's {package.num_frames} frames.")
-    weights = torch.from_numpy(np.asarray(package.skin_weights, dtype=np.float32))
-    transforms = torch.from_numpy(np.asarray(package.bone_transforms[frame], dtype=np.float32))
+    device = package.canonical.means.device
+    weights = torch.from_numpy(np.asarray(package.skin_weights, dtype=np.float32)).to(device)
+    transforms = torch.from_numpy(np.asarray(package.bone_transforms[frame], dtype=np.float32)).to(device)
     return apply_lbs(corrected_canonical(package, frame), weights, transforms, package.stretch)

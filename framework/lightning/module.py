@@ -353,7 +353,8 @@ def restore_rng_states(states: dict[str, Any]) -> None:
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])
     if "cuda" in states and torch.cuda.is_available() and len(states["cuda"]) == torch.cuda.device_count():
-        torch.cuda.set_rng_state_all(states["cuda"])
+        # RNG states are CPU byte tensors; a rollback loads its checkpoint onto the training device
+        torch.cuda.set_rng_state_all([s.cpu() for s in states["cuda"]])
 
 
 def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:

@@ -182,7 +182,7 @@ def anny_pose_parameters(
     D = A[par] @ Rt @ A.transpose(-1, -2)  # [B, J, 3, 3]
     D0 = R_rest[0] @ Rt[:, 0]  # [B, 3, 3]
     D = torch.cat([D0.unsqueeze(1), D[:, 1:]], dim=1)
-    delta = torch.zeros(*D.shape[:2], 4, 4, dtype=dtype)
+    delta = torch.zeros(*D.shape[:2], 4, 4, dtype=dtype, device=D.device)
     delta[..., :3, :3] = D
     delta[..., 3, 3] = 1.0
     delta[:, 0, :3, 3] = U[0] @ rest_joints[0].to(dtype)

@@ -130,6 +130,8 @@ class PaperDensifier(Densifier):
         if state["grad2d"] is None or state["grad2d"].shape[0] != n:
             state["grad2d"] = torch.zeros(n, device=device)
             state["count"] = torch.zeros(n, device=device)
+        elif state["grad2d"].device != device:  # restored from a checkpoint before Lightning moved the module
+            state["grad2d"], state["count"] = state["grad2d"].to(device), state["count"].to(device)
         means2d = info.get("means2d")
         grad = getattr(means2d, "grad", None)
         if grad is None or n == 0:
