@@ -21,9 +21,11 @@ from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On
 from __future__ import annotations  # noqa: I001  (framework.train is imported before torch on purpose)
 
 import argparse
+import os
 import sys
 import traceback
 from collections import Counter
+from pathlib import Path
 
 import framework.train as train_entry  # first: it sets the OpenMP thread policy before torch is imported
 
@@ -45,22 +47,49 @@ SYNC_OPS = {
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
 
 
+def _own_roots() -> dict[str, str]:
+    """Folder prefix -> name of our two packages, wherever they were imported from (a worktree, an install)."""
+    import framework
+    import plugins
+
+    return {str(Path(m.__file__).resolve().parent) + os.sep: m.__name__ for m in (framework, plugins)}
+
+
 def _site() -> str:
     """The innermost frame of our own code on the stack, 'path:line function', and the library frame that made the
     call when it was not ours (Lightning's logging, say)."""
-    stack = [f for f in traceback.extract_stack()[:-2] if "/tools/count_syncs.py" not in f.filename.replace("\\", "/")]
-    stack = [f for f in stack if "/torch/utils/_python_dispatch" not in f.filename and "/torch/_ops" not in f.filename]
+    roots = _ROOTS or _ROOTS.update(_own_roots()) or _ROOTS
     caller = None
-    for frame in reversed(stack):
-        name = frame.filename.replace("\\", "/")
-        for root in ("/framework/", "/plugins/"):
-            if root in name:
-                own = f"{root.strip('/')}/{name.split(root, 1)[1]}:{frame.lineno} {frame.name}"
+    for frame in reversed(traceback.extract_stack()[:-2]):
+        name = frame.filename
+        if name == __file__ or "/torch/utils/_python_dispatch" in name or "/torch/_ops" in name:
+            continue
+        for prefix, package in roots.items():
+            if name.startswith(prefix):
+                own = f"{package}/{name[len(prefix) :]}:{frame.lineno} {frame.name}"
                 return own if caller is None else f"{caller} (via {own})"
         if caller is None and "/torch/" not in name:
             tail = name.split("site-packages/", 1)[-1]
             caller = f"{tail}:{frame.lineno} {frame.name}"
     return caller or "(outside framework/ and plugins/)"
+
+
+_ROOTS: dict[str, str] = {}
+
+
+def _function(site: str) -> str:
+    """'path:line name' (or 'lib (via path:line name)') -> 'path name' of our own frame."""
+    own = site.split("(via ", 1)[1].rstrip(")") if "(via " in site else site
+    path, _, rest = own.partition(":")
+    return f"{path} {rest.partition(' ')[2]}".strip()
+
+
+def _operator_group(site: str) -> str:
+    if site.startswith(RASTERIZER_FILES) or "(via framework/splat/" in site or "(via plugins/rasterizer/" in site:
+        return "rasterizer (torch_ref's own)"
+    if site.startswith("(outside"):
+        return "autograd's built-in backward formulas"
+    return "the rest of the step"
 
 
 class SyncCounter(TorchDispatchMode):
@@ -70,6 +99,9 @@ class SyncCounter(TorchDispatchMode):
         super().__init__()
         self.step: int | None = None
         self.counts: Counter[tuple[str, str]] = Counter()
+        # every aten operator of the counted steps (on a GPU, each one launch or more), by where it came from
+        self.operators: Counter[str] = Counter()
+        self.operator_sites: Counter[str] = Counter()  # by our innermost function (file and name, no line)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kind = SYNC_OPS.get(func)
@@ -79,8 +111,12 @@ class SyncCounter(TorchDispatchMode):
             kind = "boolean index"
         if func is aten.repeat_interleave.Tensor and (kwargs or {}).get("output_size") is not None:
             kind = None  # the output size is given: nothing to wait for
-        if kind is not None and self.step is not None:
-            self.counts[(kind, _site())] += 1
+        if self.step is not None:
+            site = _site()
+            self.operators[_operator_group(site)] += 1
+            self.operator_sites[_function(site)] += 1
+            if kind is not None:
+                self.counts[(kind, site)] += 1
         return func(*args, **(kwargs or {}))
 
 
@@ -104,6 +140,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=40, help="training steps; the stage switch is forced halfway")
     ap.add_argument("--warmup", type=int, default=3, help="steps left out at the start of each stage")
     ap.add_argument("--native", action="store_true", help="keep this machine's compiled CPU paths")
+    ap.add_argument("--top-operators", type=int, default=15, metavar="K",
+                    help="list the K functions of ours that issue the most operators per step (0: none)")  # fmt: skip
     ap.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = ap.parse_args(argv)
     if args.steps < 2 * (args.warmup + 1):
@@ -152,6 +190,12 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {count / n:.2f} | {kind} | `{site}`{note} |")
     outside = sum(c for (_, s), c in counter.counts.items() if not s.startswith(RASTERIZER_FILES)) / n
     print(f"\noutside the rasterizer: {outside:.2f} per step")
+    ops = ", ".join(f"{group} {count / n:.0f}" for group, count in counter.operators.most_common())
+    print(f"aten operators per step (on a GPU each is one kernel launch or more, microseconds of host time): {ops}")
+    if args.top_operators > 0:
+        print("\n| operators per step | issued in (forward, and backward where it runs Python) |\n|---|---|")
+        for function, count in counter.operator_sites.most_common(args.top_operators):
+            print(f"| {count / n:.0f} | `{function}` |")
 
 
 if __name__ == "__main__":
