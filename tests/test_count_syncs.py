@@ -3,6 +3,8 @@ our code that made it, and nothing else is counted."""
 
 from __future__ import annotations
 
+from collections import Counter
+
 import torch
 from tool_module import load_tool
 
@@ -26,9 +28,8 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
         polar_rotation_values(A)  # well-conditioned: one check, then the Newton loop's own
         counter.step = None
         float(y[1])  # outside a counted step
-    by_kind = {}
+    by_kind: Counter[str] = Counter()
     for (kind, _site), c in counter.counts.items():
-        by_kind.setdefault(kind, 0)
         by_kind[kind] += c
     assert by_kind["boolean index"] == 1 and by_kind["nonzero"] == 1 and by_kind["repeat_interleave"] == 1
     polar_sites = {s: c for (k, s), c in counter.counts.items() if "framework/rig/polar.py" in s}

@@ -21,6 +21,7 @@ from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On
 from __future__ import annotations  # noqa: I001  (framework.train is imported before torch on purpose)
 
 import argparse
+import functools
 import os
 import sys
 import traceback
@@ -47,6 +48,7 @@ SYNC_OPS = {
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
 
 
+@functools.lru_cache(maxsize=1)
 def _own_roots() -> dict[str, str]:
     """Folder prefix -> name of our two packages, wherever they were imported from (a worktree, an install)."""
     import framework
@@ -58,7 +60,7 @@ def _own_roots() -> dict[str, str]:
 def _site() -> str:
     """The innermost frame of our own code on the stack, 'path:line function', and the library frame that made the
     call when it was not ours (Lightning's logging, say)."""
-    roots = _ROOTS or _ROOTS.update(_own_roots()) or _ROOTS
+    roots = _own_roots()
     caller = None
     for frame in reversed(traceback.extract_stack()[:-2]):
         name = frame.filename
@@ -72,9 +74,6 @@ def _site() -> str:
             tail = name.split("site-packages/", 1)[-1]
             caller = f"{tail}:{frame.lineno} {frame.name}"
     return caller or "(outside framework/ and plugins/)"
-
-
-_ROOTS: dict[str, str] = {}
 
 
 def _function(site: str) -> str:

@@ -153,7 +153,7 @@ class PaperDensifier(Densifier):
         # sync on a GPU (boolean indexing waits for the count). Culled rows add an exact 0 (`where`, not a product, so
         # a non-finite gradient in a row gsplat never wrote cannot leak in).
         norms = torch.where(visible, grad.norm(dim=-1), 0.0)  # [C, N]
-        state["grad2d"] += norms.sum(0) if norms.shape[0] > 1 else norms[0]
+        state["grad2d"] += norms.sum(0)
         state["count"] += visible.sum(0, dtype=state["count"].dtype)
 
     def grow(self, params: dict[str, nn.Parameter], optimizers, state: dict[str, Any]) -> tuple[int, int]:
