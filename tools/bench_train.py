@@ -28,6 +28,12 @@ bound on the stage-2 step on this machine: the rasterizer's time plus the MLPs' 
 FlopCounterMode) at the best sgemm rate measured in the same run. Dataset images are decoded once before
 timing (a long run reads them from its in-memory cache after the first epoch); `--cold-data` times first reads
 instead.
+
+The host's cost of a GPU step, on any machine: `--accelerator-path` switches the compiled CPU kernels off, so the CPU
+runs the torch code a GPU runs, operator for operator; at a tiny size the arithmetic vanishes and what is left is
+the cost of issuing the step's operators, the work a GPU's host does per step whatever the device computes:
+
+    python tools/bench_train.py --accelerator-path --variants default -- profile.num_gaussians=300 profile.resolution=32
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ UNATTRIBUTED = "Lightning loop (outside every section)"
 import torch  # noqa: E402  (after framework.train on purpose)
 
 from framework.evaluation.gemm_rate import gemm_rate, record_gemms, replay_gemms  # noqa: E402
+from framework.rig.compiled_threads import use_compiled_paths  # noqa: E402
 
 # name -> Hydra overrides; a variant whose overrides do not compose (e.g. a key an older commit lacks) is skipped.
 VARIANTS: dict[str, list[str]] = {
@@ -670,6 +677,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="synchronise a CUDA device at every section boundary (auto: on CUDA) so each row holds its "
                          "own kernels; off measures the unsynchronised step (host and device overlapping)")  # fmt: skip
     ap.add_argument("--cold-data", action="store_true", help="do not decode the dataset's images before timing")
+    ap.add_argument("--accelerator-path", action="store_true",
+                    help="switch the compiled CPU kernels off: a CPU runs the torch code a GPU runs")  # fmt: skip
     ap.add_argument("--json", default=None, help="write every step's timings here")
     ap.add_argument("--trace", type=int, default=0, metavar="K",
                     help="print torch.profiler's top K operators by self CPU time in stage 2")  # fmt: skip
@@ -689,6 +698,7 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.ERROR)
     splits = SharedSplits(warm=not args.cold_data)
+    compiled_before = use_compiled_paths(not args.accelerator_path)
     threads = torch.get_num_threads()  # a variant may change it (threads=1): restored after each
     load0 = os.getloadavg()
     results: dict[str, VariantResult] = {}
@@ -710,14 +720,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[bench_train]   stage 2 median {s2['step_median_ms'] if s2 else float('nan'):.1f} ms "
                   f"{res.note}", file=sys.stderr, flush=True)  # fmt: skip
     load1 = os.getloadavg()
+    use_compiled_paths(compiled_before)
     ordered = list(results.values())
+    code_path = "the accelerator's (compiled CPU kernels off)" if args.accelerator_path else "this machine's own"
     header = (
         f"{args.experiment}, profile {args.profile}, {args.steps} steps per variant x {args.rounds} round(s) "
         f"(stage switch at {args.steps // 2}, first {args.warmup} steps of each stage dropped); torch "
         f"{torch.__version__}, {threads} threads, OMP_WAIT_POLICY="
         f"{os.environ.get('OMP_WAIT_POLICY', '(unset)')}, {os.cpu_count()} CPUs ({platform.processor() or 'cpu'}), "
         f"load average {load0[0]:.1f} -> {load1[0]:.1f}; sections synchronised with the device: {args.sections_sync} "
-        f"(auto: on a CUDA device); process peak RSS "
+        f"(auto: on a CUDA device); code path: {code_path}; process peak RSS "
         f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
     )
     print("\n" + header + "\n")

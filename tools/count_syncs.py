@@ -10,7 +10,7 @@ of the two. This tool runs `framework.train.run` (the real training, as `tools/b
 TorchDispatchMode that counts those operators and names the innermost framework/plugins line that called each, per
 training step (the first `--warmup` steps of each stage left out).
 
-By default the compiled CPU kernels are switched off (`framework.rig.compiled_threads.cpu_float` answers False), so a
+By default the compiled CPU kernels are switched off (`framework.rig.compiled_threads.use_compiled_paths(False)`), so a
 CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
 polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
 accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
@@ -23,7 +23,6 @@ from __future__ import annotations  # noqa: I001  (framework.train is imported b
 import argparse
 import functools
 import os
-import sys
 import traceback
 from collections import Counter
 from pathlib import Path
@@ -119,19 +118,6 @@ class SyncCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def _accelerator_path() -> None:
-    """Every compiled CPU path off: the modules that imported `cpu_float` by name get the patched test too."""
-    import framework.rig.compiled_threads as threads
-
-    def never(*_args, **_kwargs) -> bool:
-        return False
-
-    threads.cpu_float = never
-    for name, module in list(sys.modules.items()):
-        if name.startswith(("framework", "plugins")) and getattr(module, "cpu_float", None) is not None:
-            module.cpu_float = never
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--experiment", default="paper_full")
@@ -150,10 +136,10 @@ def main(argv: list[str] | None = None) -> None:
     from hydra import compose, initialize_config_module
 
     from framework.plugins import load_plugins
+    from framework.rig.compiled_threads import use_compiled_paths
 
     load_plugins()
-    if not args.native:
-        _accelerator_path()
+    compiled_before = use_compiled_paths(args.native)
     import framework.lightning.module as module_mod
 
     counter = SyncCounter()
@@ -178,6 +164,7 @@ def main(argv: list[str] | None = None) -> None:
             train_entry.run(cfg, overrides=overrides)
     finally:
         cls.training_step = original
+        use_compiled_paths(compiled_before)
     n = len(counted)
     path = "this machine's own" if args.native else "the accelerator's (compiled CPU kernels off)"
     print(f"\n{args.experiment}, profile {args.profile}, {path} code path: host syncs per step, mean over {n} steps")

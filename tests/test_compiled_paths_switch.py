@@ -1,0 +1,29 @@
+"""`use_compiled_paths(False)` makes a CPU run the torch code an accelerator runs: every compiled path's test answers
+no (each module imported `cpu_float` by name, so the switch must act inside it), and the SSIM then equals kornia's."""
+
+from __future__ import annotations
+
+import torch
+
+from framework.image import compiled_ssim
+from framework.image.ssim import ssim_map
+from framework.model import compiled_posenc, lbs_deformer
+from framework.rig.compiled_threads import use_compiled_paths
+from plugins.rasterizer import numba_cpu
+
+
+def test_switch_turns_every_compiled_path_away_and_restores_it() -> None:
+    x = torch.rand(1, 3, 24, 24)
+    modules = (compiled_ssim, compiled_posenc, lbs_deformer, numba_cpu)
+    assert all(m.cpu_float(x) for m in modules)
+    previous = use_compiled_paths(False)
+    try:
+        assert previous is True
+        assert not any(m.cpu_float(x) for m in modules)
+        y = torch.rand(1, 3, 24, 24)
+        # by default a CPU float image takes the compiled SSIM; switched off, kornia's path runs (equal bit for bit)
+        default, kornia = ssim_map(x, y, 11), ssim_map(x, y, 11, compiled=False)
+        torch.testing.assert_close(default, kornia, rtol=0, atol=0)
+    finally:
+        assert use_compiled_paths(previous) is False
+    assert all(m.cpu_float(x) for m in modules)
