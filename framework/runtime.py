@@ -1,4 +1,5 @@
-"""Process settings for training on a CPU: the allocator's reuse of freed tensor memory.
+"""Process settings: the allocator's reuse of freed tensor memory on a CPU, and float32 arithmetic without TF32 on a
+GPU where our numbers depend on it.
 
 (The OpenMP wait policy is the other one; it must be in the environment before torch is imported, so the entry point
 sets it on its first lines.)
@@ -8,6 +9,10 @@ from __future__ import annotations
 
 import ctypes
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD = -1
@@ -31,3 +36,22 @@ def reuse_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))
+
+
+@contextmanager
+def exact_float32() -> Iterator[None]:
+    """Within the block, float32 convolutions on a GPU round as float32, not TF32.
+
+    Why: cuDNN takes float32 convolutions as TF32 by default (`torch.backends.cudnn.allow_tf32`), rounding every input
+    to a 10-bit mantissa. SSIM subtracts squared means from filtered squares, which turns that rounding into an error
+    of its own size: emulated on a CPU (tools/emulate_tf32.py), TF32 moved the mean SSIM of a 512^2 image pair by
+    1.9e-2, float32 by 3e-6. The SSIM metric and D-SSIM loss and the LPIPS network run in this block. A CPU ignores
+    the flag. Matrix products are TF32 only under `torch.set_float32_matmul_precision("high")`, which no entry point
+    sets (it moved LBS translations by 1.4 mm in the same emulation); their flag is left alone here, because torch
+    refuses to report the matmul precision once its legacy and new switches have both been set, and Lightning asks."""
+    conv = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32 = conv

@@ -133,7 +133,9 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    torch.set_float32_matmul_precision("high")
+    # float32 matrix products stay float32 on a GPU: "high" would let them round to TF32's 10-bit mantissa, which moves
+    # the LBS blend's translations by ~1.4 mm (tools/emulate_tf32.py). Convolutions: framework.runtime.exact_float32.
+    torch.set_float32_matmul_precision("highest")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
 

