@@ -75,6 +75,7 @@ VARIANTS: dict[str, list[str]] = {
     "torch_weights": ["deformer.compiled_weights=false"],
     "torch_skinning": ["deformer.compiled_skinning=false"],
     "kornia_ssim": ["+loss.terms.dssim.compiled=false"],
+    "compile_pose": ["compile.pose=true"],
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "torch_skinning", "polar_float64"]
 
@@ -263,7 +264,9 @@ class Instrument:
         c.hook_module("polar + LBS (+ SH rotation) (deformer)", avatar.deformer)
         if hasattr(avatar, "_view_colour"):
             avatar._view_colour = c.wrap("view colour (SH at R^T d, one camera)", avatar._view_colour)
-        for method in ("weights", "smooth_weights"):  # the centres alone; the centres, the L_w points and L_w
+        # the centres alone; the centres, the L_w points and L_w (not when the deformer is compiled: a timer inside it
+        # would split its graph, so the lookup is then charged to the deformer's row)
+        for method in () if getattr(avatar, "pose_compiled", False) else ("weights", "smooth_weights"):
             if hasattr(avatar.deformer, method):
                 setattr(avatar.deformer, method, c.wrap("weight lookup + F_dw", getattr(avatar.deformer, method)))
         c.hook_module("avatar glue (parameters, activations)", avatar)

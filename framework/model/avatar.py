@@ -136,6 +136,21 @@ class Avatar(nn.Module):
         self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
         # Real-time path: novel views of one pose reuse the corrected, posed Gaussians (inference only).
         self._posed_cache: tuple[bytes, Gaussians, dict[str, Tensor], Tensor | None] | None = None
+        self.pose_compiled = False  # `compile_pose_path`
+
+    def compile_pose_path(self) -> None:
+        """Hand the corrector F_a and the deformer (weights, LBS, polar, SH frames) to `torch.compile` with dynamic
+        shapes, in place (`nn.Module.compile`: parameter names and checkpoints stay as they are).
+
+        Why: a GPU step of this model is bound by the host issuing ~2000 small operators (tools/count_syncs.py), not
+        by the device; compiled, the pose path's element-wise chains run as a few fused kernels forward and backward.
+        Its data-dependent parts (the polar decomposition's convergence checks and SVD fallback, the compiled CPU
+        loops) stay eager between the compiled pieces. Densification changes N every few hundred steps: dynamic shapes
+        compile once per SH degree and stage, not per N."""
+        for module in (self.corrector, self.deformer):
+            if module is not None:
+                module.forward = torch.compile(module.forward, dynamic=True)  # hooks (timers) stay outside
+        self.pose_compiled = True
 
     @property
     def rasterizer(self) -> Rasterizer:

@@ -127,6 +127,7 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
 
 
+@torch.compiler.disable  # data-dependent (convergence checks, SVD fallback): eager inside a compiled pose path
 @torch.no_grad()
 def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
     """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
