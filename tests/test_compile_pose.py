@@ -1,6 +1,7 @@
 """`compile.pose=true` (Avatar.compile_pose_path): the corrector and the deformer under torch.compile render the same
-image and give every parameter the same gradient as eager, on the torch code a GPU runs (compiled CPU loops off),
-and the module's parameter names (its checkpoints) do not change. Slow: inductor compiles for ~30 s on 2 cores."""
+image and give every parameter the same gradient as eager, on the torch code a GPU runs (compiled CPU loops off; on
+CUDA with `-m gpu`: Triton's kernels), and the module's parameter names (its checkpoints) do not change. Slow: inductor
+compiles for ~30 s on 2 cores."""
 
 from __future__ import annotations
 
@@ -32,17 +33,24 @@ def _step(module, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     return out.render.rgb.detach(), grads
 
 
+NEEDS_CUDA = {"condition": not torch.cuda.is_available(), "reason": "needs a CUDA device"}
+
+
 @pytest.mark.slow
-def test_compiled_pose_path_matches_eager(tmp_path, monkeypatch) -> None:
+@pytest.mark.parametrize(
+    "device", ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(**NEEDS_CUDA)])]
+)
+def test_compiled_pose_path_matches_eager(tmp_path, monkeypatch, device: str) -> None:
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path))
     batch = _batch(24)
     batch.image.uniform_(0, 1, generator=torch.Generator().manual_seed(1))
     batch.mask[:, 6:18, 6:18] = 1.0
     batch.pose.normal_(0, 0.3, generator=torch.Generator().manual_seed(2))  # a bent pose: polar, stretch, SH frames
-    previous = use_compiled_paths(False)
+    batch = batch.to(device)
+    previous = use_compiled_paths(False)  # on a CPU: the torch code a GPU runs
     torch._dynamo.utils.counters.clear()
     try:
-        eager, compiled = _module(False), _module(True)
+        eager, compiled = _module(False).to(device), _module(True).to(device)
         assert compiled.avatar.pose_compiled and not eager.avatar.pose_compiled
         assert list(compiled.state_dict()) == list(eager.state_dict())  # checkpoints keep their keys
         compiled.load_state_dict(eager.state_dict())

@@ -1,12 +1,35 @@
-"""quat_to_rotmat's closed-form backward and rotmat_to_quat against an independent formula and finite differences."""
+"""quat_to_rotmat's closed-form backward and rotmat_to_quat against an independent formula and finite differences.
+
+Every test runs twice: on the CPU's forms (entry by entry, a closed-form backward) and on the few-kernel forms an
+accelerator takes (`framework.geometry.few_kernels`; here under `use_compiled_paths(False)`)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
+import pytest
 import torch
 
-from framework.geometry import axis_angle_to_rotmat, quat_to_rotmat, quat_to_rotmat_entry_major, rotmat_to_quat
+from framework.geometry import (
+    axis_angle_to_rotmat,
+    few_kernels,
+    quat_multiply,
+    quat_to_rotmat,
+    quat_to_rotmat_entry_major,
+    rotmat_to_quat,
+)
+from framework.rig.compiled_threads import use_compiled_paths
+
+
+@pytest.fixture(autouse=True, params=["cpu_forms", "few_kernels"])
+def forms(request: pytest.FixtureRequest) -> Iterator[str]:
+    previous = use_compiled_paths(request.param == "cpu_forms")
+    try:
+        assert few_kernels(torch.zeros(1)) is (request.param == "few_kernels")
+        yield request.param
+    finally:
+        use_compiled_paths(previous)
 
 
 def _rotmat_rodrigues(q: torch.Tensor) -> torch.Tensor:
@@ -90,3 +113,17 @@ def test_rotmat_to_quat_half_turns_and_gradients() -> None:
     assert torch.isfinite(grad).all()
     generic = axis_angle_to_rotmat(torch.randn(6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3)))
     assert torch.autograd.gradcheck(rotmat_to_quat, (generic.requires_grad_(),))
+
+
+def test_quat_multiply_composes_rotations_in_both_layouts() -> None:
+    """R(a * b) = R(a) R(b) with R by Rodrigues (independent of the product's formula), [N, 4] and [4, N]; gradients
+    against finite differences."""
+    g = torch.Generator().manual_seed(5)
+    a, b = (torch.randn(40, 4, generator=g, dtype=torch.float64) for _ in range(2))
+    ab = quat_multiply(a, b)
+    torch.testing.assert_close(_rotmat_rodrigues(ab), _rotmat_rodrigues(a) @ _rotmat_rodrigues(b), atol=1e-12, rtol=0)
+    torch.testing.assert_close(ab.norm(dim=-1), a.norm(dim=-1) * b.norm(dim=-1), atol=1e-12, rtol=0)
+    torch.testing.assert_close(quat_multiply(a.t(), b.t(), dim=0), ab.t(), atol=1e-15, rtol=0)
+    some = (a[:5].clone().requires_grad_(), b[:5].clone().requires_grad_())
+    assert torch.autograd.gradcheck(quat_multiply, some)
+    assert torch.autograd.gradcheck(lambda x, y: quat_multiply(x.t(), y.t(), dim=0), some)
