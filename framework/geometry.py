@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.device_constants import constant_on
 from framework.guards import AXIS_ANGLE_TAYLOR_SQ, NORM_EPS
 from framework.rig.compiled_threads import cpu_float
 
@@ -75,10 +76,12 @@ def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Te
     so no matrix product rounds to TF32."""
     if dim == 0:  # [4, N] -> [len, N]
         outer = (a.unsqueeze(1) * b.unsqueeze(0)).flatten(0, 1)  # [16, N]
-        terms = outer.index_select(0, index.to(outer.device)) * coef.to(outer).unsqueeze(-1)  # [4 len, N]
+        index, coef = constant_on(index, outer.device), constant_on(coef, outer.device, outer.dtype)
+        terms = outer.index_select(0, index) * coef.unsqueeze(-1)  # [4 len, N]
         return terms.view(-1, 4, terms.shape[-1]).sum(1)
     outer = (a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2)  # [..., 16]
-    terms = outer.index_select(-1, index.to(outer.device)) * coef.to(outer)  # [..., 4 len]
+    index, coef = constant_on(index, outer.device), constant_on(coef, outer.device, outer.dtype)
+    terms = outer.index_select(-1, index) * coef  # [..., 4 len]
     return terms.unflatten(-1, (-1, 4)).sum(-1)
 
 
@@ -217,9 +220,10 @@ def rotmat_to_quat_entry_major(R: Tensor) -> Tensor:
     sixteen stacked candidate entries: at 8k float32 rotations 0.8 against 1.6 ms forward and 2.0-3.1 against 6.4-8.4 ms
     forward+backward (2-core CPU VM, medians, old and new alternated); values and gradients equal the sixteen-entry
     form's to 1e-15 in float64."""
-    vals = torch.addmm(_ROTMAT_QUAT_OFFSET.to(R)[:, None], _ROTMAT_QUAT_MIX.to(R).t(), R)  # [10, M]
+    offset, mix = (constant_on(t, R.device, R.dtype) for t in (_ROTMAT_QUAT_OFFSET, _ROTMAT_QUAT_MIX))
+    vals = torch.addmm(offset[:, None], mix.t(), R)  # [10, M]
     best = _argmax_of_four(vals)  # [M]
-    q = vals.gather(0, _ROTMAT_QUAT_ROWS.to(best.device).t()[:, best])  # [4, M] = 4 q_k (+-q)
+    q = vals.gather(0, constant_on(_ROTMAT_QUAT_ROWS, best.device).t()[:, best])  # [4, M] = 4 q_k (+-q)
     q = q * q.square().sum(0).rsqrt()  # |4 q_k q| = 4 q_k^2 >= 1: never zero
     return torch.where(q[:1] < 0, -q, q)
 

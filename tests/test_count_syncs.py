@@ -32,6 +32,7 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
     for (kind, _site), c in counter.counts.items():
         by_kind[kind] += c
     assert by_kind["boolean index"] == 1 and by_kind["nonzero"] == 1 and by_kind["repeat_interleave"] == 1
+    assert by_kind["tensor from Python values (host-to-device copy)"] == 2  # the two torch.tensor([1, 2])
     polar_sites = {s: c for (k, s), c in counter.counts.items() if "framework/rig/polar.py" in s}
     newton = sum(c for s, c in polar_sites.items() if "_rotation_newton" in s)
     entry = sum(c for s, c in polar_sites.items() if "_polar_values_entry_major" in s)

@@ -173,3 +173,22 @@ def test_rigid_root_rotation_rotates_everything():
     R = _rodrigues64(pose[0, 0])
     expected = (pts - joints[0]) @ R.T + joints[0]
     assert (skin_points(pts, w, T)[0] - expected).abs().max() < 1e-12
+
+
+def test_parents_tensor_is_read_once_and_again_after_a_write(monkeypatch):
+    """The parent table is read from its tensor once (on a GPU each read is a copy that waits for the device), and
+    read again when the tensor is written to in place (a loaded checkpoint's buffer)."""
+    pose, joints = _random()
+    parents = torch.tensor(PARENTS)
+    reads = []
+    original = torch.Tensor.tolist
+    monkeypatch.setattr(torch.Tensor, "tolist", lambda t: (t is parents and reads.append(1)) or original(t))
+    for _ in range(3):
+        G, _ = forward_kinematics(pose, joints, parents)
+    assert len(reads) == 1
+    torch.testing.assert_close(G, naive_fk(pose, joints, PARENTS)[0], atol=1e-12, rtol=0)
+    other = [-1, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9]  # a chain: a different tree over the same joints
+    parents.copy_(torch.tensor(other))
+    G, _ = forward_kinematics(pose, joints, parents)
+    assert len(reads) == 2
+    torch.testing.assert_close(G, naive_fk(pose, joints, other)[0], atol=1e-12, rtol=0)

@@ -14,8 +14,9 @@ By default the compiled CPU kernels are switched off (`framework.rig.compiled_th
 CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
 polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
 accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
-from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On a CUDA machine,
-`torch.cuda.set_sync_debug_mode("warn")` reports the same events as they happen.
+from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. Not counted, because a CPU
+cannot see them: `.to(device)` of a constant kept on the CPU (a no-op here, a blocking copy on a GPU); on a CUDA
+machine, `torch.cuda.set_sync_debug_mode("warn")` reports those too, as they happen.
 """
 
 from __future__ import annotations  # noqa: I001  (framework.train is imported before torch on purpose)
@@ -43,8 +44,12 @@ SYNC_OPS = {
     aten._unique2.default: "unique",
     aten.unique_dim.default: "unique",
     aten.repeat_interleave.Tensor: "repeat_interleave",
+    # a tensor made from Python values (`torch.tensor([...])`, `new_tensor`, `as_tensor` of a list): on a GPU it is
+    # built on the host and copied over, and a copy from ordinary (pageable) memory waits for the queue to drain
+    aten.lift_fresh.default: "tensor from Python values (host-to-device copy)",
 }
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
+DATA_FILES = ("framework/data/",)
 
 
 @functools.lru_cache(maxsize=1)
@@ -111,6 +116,8 @@ class SyncCounter(TorchDispatchMode):
             kind = None  # the output size is given: nothing to wait for
         if self.step is not None:
             site = _site()
+            if func is aten.lift_fresh.default and site.startswith(DATA_FILES):
+                kind = None  # the data loader builds its items in host memory; they travel with the batch
             self.operators[_operator_group(site)] += 1
             self.operator_sites[_function(site)] += 1
             if kind is not None:

@@ -12,11 +12,22 @@ already channels-last.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
 SIGMA = 1.5
 """Standard deviation of the Gaussian window, in pixels (Wang et al. 2004; kornia's and 3DGS's choice)."""
+
+
+@functools.lru_cache(maxsize=32)
+def _window(window_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """kornia's Gaussian window [1, K], made once per size, dtype and device: built per call it is a tensor from Python
+    values, on a GPU a host-to-device copy that waits for the queue (`framework.device_constants`)."""
+    from kornia.filters.kernels import get_gaussian_kernel1d
+
+    return get_gaussian_kernel1d(window_size, SIGMA, device=torch.device("cpu"), dtype=dtype).to(device)
 
 
 def ssim_map(
@@ -27,12 +38,11 @@ def ssim_map(
     `compiled` takes the compiled loops of `framework.image.compiled_ssim` (default: for CPU float tensors), else the
     moments go through kornia's `filter2d_separable` and torch."""
     from kornia.filters import filter2d_separable  # imported on first use: loading the plugins stays light
-    from kornia.filters.kernels import get_gaussian_kernel1d
 
     from framework.image import compiled_ssim  # (numba, likewise)
     from framework.runtime import exact_float32
 
-    kernel = get_gaussian_kernel1d(window_size, SIGMA, device=img1.device, dtype=img1.dtype)  # [1, K]
+    kernel = _window(window_size, img1.dtype, img1.device)  # [1, K]
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
     if compiled_ssim.applies(img1) if compiled is None else compiled:
         return compiled_ssim.ssim_map_compiled(img1, img2, kernel, c1, c2, eps)

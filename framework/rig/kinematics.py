@@ -16,7 +16,25 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
+from framework.device_constants import constant_on, index_on
 from framework.geometry import axis_angle_to_rotmat
+
+_HOMOGENEOUS_ROW = torch.tensor([0.0, 0.0, 0.0, 1.0])  # the last row of every 4x4 transform
+#: id(parents tensor) -> (the tensor, its version counter, its values): read once, not per call (on a GPU,
+#: `.tolist()` copies to the host and waits for the queue)
+_parent_tuples: dict[int, tuple[Tensor, int, tuple[int, ...]]] = {}
+
+
+def _parents_tuple(parents: Tensor | list[int] | tuple[int, ...]) -> tuple[int, ...]:
+    """The parent indices as a Python tuple, read from a tensor once per tensor (and again if it is written to)."""
+    if not isinstance(parents, Tensor):
+        return tuple(int(p) for p in parents)
+    hit = _parent_tuples.get(id(parents))
+    if hit is None or hit[0] is not parents or hit[1] != parents._version:
+        if len(_parent_tuples) > 64:  # bodies come and go (tests, tools): keep the table small
+            _parent_tuples.clear()
+        hit = _parent_tuples[id(parents)] = (parents, parents._version, tuple(int(p) for p in parents.tolist()))
+    return hit[2]
 
 
 @lru_cache(maxsize=64)
@@ -55,7 +73,7 @@ def _levels_cached(parents: tuple[int, ...]) -> tuple[tuple[tuple[int, ...], tup
 
 def kinematic_levels(parents: Tensor | list[int]) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
     """Depth levels of a tree: ((joint ids), (parent position within the previous level)) per level, root first."""
-    key = tuple(int(p) for p in (parents.tolist() if isinstance(parents, Tensor) else parents))
+    key = _parents_tuple(parents)
     return _levels_cached(key)
 
 
@@ -86,20 +104,20 @@ def forward_kinematics_rotmat(rotations: Tensor, joints: Tensor, parents: Tensor
     if joints.dim() == 2:
         joints = joints.unsqueeze(0)
     joints = joints.to(rotations.dtype).expand(B, J, 3)  # [B, J, 3]
-    key = tuple(int(p) for p in (parents.tolist() if isinstance(parents, Tensor) else parents))
+    key = _parents_tuple(parents)
     if len(key) != J:
         raise ValueError(f"parents has {len(key)} joints but pose has {J}.")
     steps = _ancestor_steps(key)
     dev, dtype = rotations.device, rotations.dtype
-    parent_rows = torch.as_tensor([p if p >= 0 else J for p in key] + [J], device=dev)  # [J + 1]
+    parent_rows = index_on(tuple(p if p >= 0 else J for p in key) + (J,), dev)  # [J + 1]
     padded = torch.cat([joints, joints.new_zeros(B, 1, 3)], dim=1)  # [B, J + 1, 3], row J: the origin
     offsets = padded - padded[:, parent_rows]  # [B, J + 1, 3] = j_k - j_parent (j_root at the root, 0 in row J)
     eye = torch.eye(3, dtype=dtype, device=dev).expand(B, 1, 3, 3)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=dev).expand(B, J + 1, 1, 4)
+    bottom = constant_on(_HOMOGENEOUS_ROW, dev, dtype).expand(B, J + 1, 1, 4)
     top = torch.cat([torch.cat([rotations, eye], dim=1), offsets.unsqueeze(-1)], dim=-1)  # [B, J + 1, 3, 4]
     A = torch.cat([top, bottom], dim=-2)  # [B, J + 1, 4, 4] local transforms; row J: the identity
     for ancestor in steps:
-        A = A[:, torch.as_tensor(ancestor, device=dev)] @ A  # relative to the next 2^s ancestors up
+        A = A[:, index_on(ancestor, dev)] @ A  # relative to the next 2^s ancestors up
     G = A[:, :J]  # [B, J, 4, 4]
     to_rest = torch.cat([torch.cat([eye.expand(B, J, 3, 3), -joints.unsqueeze(-1)], dim=-1), bottom[:, :J]], dim=-2)
     return G, G @ to_rest  # T = G @ translate(-j)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.device_constants import constant_on
 from framework.geometry import products_3x3
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
 
@@ -63,7 +64,7 @@ def _cofactors(X: Tensor) -> Tensor:
     """Cofactor matrices of X [9, M] (entry-major: every op is one contiguous vector operation), [9, M].
 
     One gather of the 36 factor rows and one fused multiply-subtract, instead of 27 products on single entries."""
-    Y = X.index_select(0, _COFACTOR_INDEX.to(X.device)).view(4, 9, -1)  # [4, 9, M]
+    Y = X.index_select(0, constant_on(_COFACTOR_INDEX, X.device)).view(4, 9, -1)  # [4, 9, M]
     return torch.addcmul(Y[0] * Y[1], Y[2], Y[3], value=-1.0)
 
 

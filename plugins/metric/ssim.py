@@ -6,6 +6,7 @@ from torch import Tensor
 
 from framework.interfaces.metric import Metric
 from framework.registry import register
+from framework.runtime import exact_float32
 
 WINDOW = 11
 
@@ -31,4 +32,5 @@ class SSIM(Metric):
             )
         p = pred.permute(0, 3, 1, 2).float()  # [B, 3, H, W]
         t = target.permute(0, 3, 1, 2).float()
-        return ssim(p, t, WINDOW, max_val=1.0, padding="valid").mean(dim=(1, 2, 3))  # [B]
+        with exact_float32():  # a reported metric: the same number on a GPU as on a CPU (no TF32 convolutions)
+            return ssim(p, t, WINDOW, max_val=1.0, padding="valid").mean(dim=(1, 2, 3))  # [B]

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from framework.device_constants import constant_on
 from framework.interfaces.rasterizer import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -39,6 +40,9 @@ from framework.splat.pairs import depth_ordered_entries, enumerate_pairs, sort_p
 from framework.splat.projection import Projection, project_gaussians
 from framework.splat.sh import eval_sh
 from framework.types import BlendWeights, Cameras, RenderOutput
+
+# signs and halves that turn the scattered sums into the conic's six gradient terms (backward_scatter)
+_CONIC_GRAD_SIGNS = torch.tensor([-1.0, -1.0, -0.5, -1.0, -0.5, -1.0])
 
 _pixel_centre_cache: dict[tuple[int, int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
 
@@ -162,7 +166,7 @@ def backward_scatter(
     for i in range(K):
         torch.mul(w, pair_grads[i], out=src[6 + i])
     acc = torch.zeros(6 + K, num_entries, dtype=T.dtype, device=T.device).index_add_(1, ent, src)
-    acc[:6] *= acc.new_tensor([-1.0, -1.0, -0.5, -1.0, -0.5, -1.0])[:, None]
+    acc[:6] *= constant_on(_CONIC_GRAD_SIGNS, acc.device, acc.dtype)[:, None]
     return acc
 
 
