@@ -70,8 +70,9 @@ def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Te
     """The four-term bilinear forms of `_product_table` of 4-vectors a, b along `dim` (0 or -1), stacked along `dim`.
 
     Why: four kernels each way (outer product, gather, scale, sum) where the entry-by-entry formulas issue one kernel
-    per product and sum, ~25-40 forward and as many backward. A GPU's step is bound by the host launching kernels,
-    so the accelerators take this form; a CPU runs the entry-by-entry one faster (`quat_to_rotmat` as a gathered
+    per product and sum, ~25-40 forward and as many backward. A GPU pays a launch for every kernel, and a training step
+    is made of ~1700 small ones (tools/count_syncs.py), so the accelerators take this form; a CPU runs the
+    entry-by-entry one faster (`quat_to_rotmat` as a gathered
     outer product: 0.72 against 0.55 ms forward+backward at 8k on a 2-core CPU). Element-wise products and sums only,
     so no matrix product rounds to TF32."""
     if dim == 0:  # [4, N] -> [len, N]

@@ -55,3 +55,8 @@ def exact_float32() -> Iterator[None]:
         yield
     finally:
         torch.backends.cudnn.allow_tf32 = conv
+
+
+def default_device() -> str:
+    """Where a trained model renders when nobody says: the GPU when there is one, else the CPU."""
+    return "cuda" if torch.cuda.is_available() else "cpu"

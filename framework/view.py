@@ -16,15 +16,15 @@ def main() -> int:
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="view")
     def _main(cfg: DictConfig) -> None:
-        import torch
 
         from framework.animation.camera_paths import subject_view
         from framework.lightning.trained_model import datamodule_for, load_module
+        from framework.runtime import default_device
         from framework.viewer.app import ViewerApp
         from framework.viewer.session import ViewerSession
 
         with reported_as_message():
-            device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
+            device = cfg.device or default_device()
             module = load_module(cfg.ckpt, map_location=str(device))
             dm = datamodule_for(module)
             session = ViewerSession(module, dm, cfg.motion, float(cfg.fps), cfg.rasterizer)

@@ -39,6 +39,7 @@ import torch
 
 from framework.plugins import load_plugins
 from framework.registry import RASTERIZERS
+from framework.runtime import default_device
 from framework.types import Cameras
 
 DEFAULT_SIZES = ["10k@128", "30k@256", "100k@512"]
@@ -248,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="COUNT@RES, e.g. 30k@256")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--device", default=default_device())
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
     ap.add_argument("--sh-degree", type=int, default=3)
     ap.add_argument("--max-seconds", type=float, default=30.0, help="a cell slower than this runs once only")

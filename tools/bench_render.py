@@ -39,6 +39,7 @@ from framework.model.avatar import Avatar, GaussianParams
 from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
+from framework.runtime import default_device
 from framework.splat.sh import sh_degree_of_bases
 from framework.types import Cameras, FrameBatch, RenderOutput
 
@@ -143,7 +144,7 @@ def main() -> None:
     ap.add_argument("--num", type=int, default=20000, help="Gaussians (synthetic avatar only)")
     ap.add_argument("--resolution", type=int, default=512)
     ap.add_argument("--backends", nargs="*", default=None, help="default: every available rasterizer")
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--device", default=default_device())
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--json", default=None)

@@ -254,7 +254,9 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"{flag} {path}: no such checkpoint file (look in a run's checkpoints/ folder).")
     settings = dict([parse_setting(s) for s in args.setting]) if args.setting else dict(DEFAULT_SETTINGS)
     settings = {AS_TRAINED: {}, **settings}
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    from framework.runtime import default_device
+
+    device = default_device()
     rows = trade(
         args.reference, args.ckpt, args.out, settings, args.warmup, args.repeats, args.rounds, device, args.rasterizer
     )

@@ -91,9 +91,9 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
 
 
 def _device() -> str:
-    import torch
+    from framework.runtime import default_device
 
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    return default_device()
 
 
 def scene_table(name: str, result: dict) -> str:

@@ -10,17 +10,33 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def load_module(ckpt: str | Path, map_location: str = "cpu"):
+def load_module(ckpt: str | Path, map_location: str | None = None):
     """The trained model of a checkpoint in eval mode, rebuilt from the config stored in it (errors name the file and
-    the fix)."""
+    the fix), on `map_location` (default: the GPU when there is one, else the CPU).
+
+    A model trained with gsplat (the GPU default) renders on a CPU with `numba`: gsplat draws CUDA tensors only, and
+    every backend renders the same function (the conformance suite). The stored config keeps `gsplat`, so a file this
+    model writes again (a compacted copy) still says what it was trained with."""
+    import torch
+
     from framework.lightning.checkpoint_io import CheckpointError, read_checkpoint
     from framework.lightning.module import SplatModule
     from framework.plugins import load_plugins
+    from framework.runtime import default_device
 
-    checkpoint = read_checkpoint(ckpt, map_location)
+    device = torch.device(map_location or default_device())
+    checkpoint = read_checkpoint(ckpt, "cpu")
     load_plugins()
     hparams = checkpoint["hyper_parameters"]
-    module = SplatModule(hparams["cfg"], hparams["data_info"])
+    cfg = hparams["cfg"]
+    built = cfg
+    if str(cfg["rasterizer"].get("name")) == "gsplat" and device.type != "cuda":
+        built = {**cfg, "rasterizer": {"name": "numba"}}
+        print(f"[splatrig] ckpt={ckpt}: trained with rasterizer=gsplat, which renders CUDA tensors only; rendering on "
+              f"the {device.type} with numba (the same function)")  # fmt: skip
+    module = SplatModule(built, hparams["data_info"])
+    if built is not cfg:
+        module.cfg = module.hparams["cfg"] = cfg
     module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage
     try:
         module.load_state_dict(checkpoint["state_dict"])
@@ -31,7 +47,7 @@ def load_module(ckpt: str | Path, map_location: str = "cpu"):
             f"ckpt={ckpt}: its tensors do not fit the model its own config builds ({detail}); it was written by an "
             f"incompatible version of splatrig or edited. Train it again."
         ) from None
-    return module.to(map_location).eval()
+    return module.to(device).eval()
 
 
 def datamodule_for(module):

@@ -35,6 +35,7 @@ from framework.model.pruning import (
 )
 from framework.model.refit import RefitResult, refit_gaussians
 from framework.model.render_check import RenderCheck
+from framework.runtime import default_device
 
 CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
 DEFAULT_REFIT_STEPS = 1500
@@ -389,7 +390,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
     if out.resolve() == ckpt_path.resolve():
         raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
-    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    device = device or default_device()
     module = load_module(ckpt_path, device)
     fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
     dm = datamodule_for(module)

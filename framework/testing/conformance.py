@@ -211,7 +211,9 @@ def build_backend(name: str) -> Rasterizer:
 
 @pytest.fixture
 def device() -> str:
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    from framework.runtime import default_device
+
+    return default_device()
 
 
 @pytest.fixture
