@@ -62,8 +62,14 @@ def finite_probe(tensors: Iterable[Tensor | None]) -> Tensor:
     """One scalar that is finite iff every given tensor is (None entries are skipped), unless a sum overflows float32
     (entries around 1e32: a divergence of its own). Sums in the tensors' dtype: 3-4x faster than float64 sums on a CPU
     (0.6 vs 2.4 ms for 1.5 M values, the parameters and gradients of 10k Gaussians)."""
-    sums = [t.detach().sum().float() for t in tensors if t is not None and t.numel()]
-    return torch.stack(sums).sum() if sums else torch.zeros(())
+    present = [t.detach() for t in tensors if t is not None and t.numel()]
+    if not present:
+        return torch.zeros(())
+    if all(t.is_cuda and t.dtype == torch.float32 for t in present):
+        # one multi-tensor kernel for all of them instead of two kernels per tensor (a step probes ~45 tensors);
+        # the 1-norm is non-finite exactly when the sum of the tensor's absolute values is
+        return torch.stack(torch._foreach_norm(present, 1.0)).sum()
+    return torch.stack([t.sum().float() for t in present]).sum()
 
 
 def grads_and_params(optimizer: torch.optim.Optimizer) -> tuple[list[Tensor | None], list[Tensor]]:

@@ -159,18 +159,14 @@ def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dt
 
 
 def _solve_sym3(M: Tensor, b: Tensor) -> Tensor:
-    """x = M^-1 b for symmetric positive definite M [3, 3, K] and b [3, K], by the adjugate (Cramer's rule)."""
-    m00, m01, m02, m11, m12, m22 = M[0, 0], M[0, 1], M[0, 2], M[1, 1], M[1, 2], M[2, 2]
-    c00 = m11 * m22 - m12 * m12  # cofactors (symmetric)
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    b0, b1, b2 = b.unbind(0)
-    x = torch.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2])
-    return x / det  # [3, K]
+    """x = M^-1 b for symmetric positive definite M [3, 3, K] and b [3, K], by the adjugate (Cramer's rule).
+
+    The cofactors come from `_cofactors` (one gather, one fused multiply-subtract; for a symmetric M the adjugate is
+    its cofactor matrix): eight kernels where the cofactors written out one by one took thirty."""
+    K = M.shape[-1]
+    C = _cofactors(M.reshape(9, K)).view(3, 3, K)  # [3, 3, K], symmetric
+    det = (M[0] * C[0]).sum(0)  # [K], along the first row
+    return (C * b.unsqueeze(0)).sum(1) / det  # [3, K]
 
 
 def _skew_entry_major(v: Tensor) -> Tensor:
