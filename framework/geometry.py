@@ -7,7 +7,7 @@ from torch import Tensor
 
 from framework.device_constants import constant_on
 from framework.guards import AXIS_ANGLE_TAYLOR_SQ, NORM_EPS
-from framework.rig.compiled_threads import cpu_float
+from framework.runtime import cpu_float
 
 
 def _normalize_with_norm(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> tuple[Tensor, Tensor]:

@@ -10,7 +10,7 @@ import torch
 import torch._dynamo
 from test_table4_rows import _batch, composed
 
-from framework.rig.compiled_threads import use_compiled_paths
+from framework.runtime import use_compiled_paths
 
 
 def _module(compile_pose: bool):

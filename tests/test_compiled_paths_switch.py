@@ -8,7 +8,7 @@ import torch
 from framework.image import compiled_ssim
 from framework.image.ssim import ssim_map
 from framework.model import compiled_posenc, lbs_deformer
-from framework.rig.compiled_threads import use_compiled_paths
+from framework.runtime import use_compiled_paths
 from plugins.rasterizer import numba_cpu
 
 

@@ -19,7 +19,7 @@ from framework.geometry import (
     quat_to_rotmat_entry_major,
     rotmat_to_quat,
 )
-from framework.rig.compiled_threads import use_compiled_paths
+from framework.runtime import use_compiled_paths
 
 
 @pytest.fixture(autouse=True, params=["cpu_forms", "few_kernels"])

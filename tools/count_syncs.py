@@ -10,7 +10,7 @@ of the two. This tool runs `framework.train.run` (the real training, as `tools/b
 TorchDispatchMode that counts those operators and names the innermost framework/plugins line that called each, per
 training step (the first `--warmup` steps of each stage left out).
 
-By default the compiled CPU kernels are switched off (`framework.rig.compiled_threads.use_compiled_paths(False)`), so a
+By default the compiled CPU kernels are switched off (`framework.runtime.use_compiled_paths(False)`), so a
 CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
 polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
 accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     from hydra import compose, initialize_config_module
 
     from framework.plugins import load_plugins
-    from framework.rig.compiled_threads import use_compiled_paths
+    from framework.runtime import use_compiled_paths
 
     load_plugins()
     compiled_before = use_compiled_paths(args.native)

@@ -21,7 +21,8 @@ from numba import njit
 from torch import Tensor
 
 from framework.image.compiled_filter import filter_planes
-from framework.rig.compiled_threads import cpu_float, run_chunked
+from framework.rig.compiled_threads import run_chunked
+from framework.runtime import cpu_float
 
 #: pixels (over an image plane's five moments) below which a chunk of planes is not worth a second thread
 MIN_PIXELS_PER_CHUNK = 32768

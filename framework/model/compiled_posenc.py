@@ -23,7 +23,7 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from framework.rig.compiled_threads import cpu_float
+from framework.runtime import cpu_float
 
 
 @njit(cache=True, nogil=True)

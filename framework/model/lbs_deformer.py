@@ -8,11 +8,11 @@ import torch
 from torch import Tensor
 
 from framework.interfaces.deformer import Deformer, DeformOutput
-from framework.rig.compiled_threads import cpu_float
 from framework.rig.fold import fold_weights
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
 from framework.rig.sh_rotation import rotate_sh
 from framework.rig.weight_field import WeightField, build_weight_grid
+from framework.runtime import cpu_float
 from framework.types import Gaussians
 
 

@@ -20,8 +20,6 @@ import torch
 MIN_CHUNK = 1024
 
 _pool: ThreadPoolExecutor | None = None
-#: False runs the torch code an accelerator runs on a CPU too (see `use_compiled_paths`)
-_compiled_paths = True
 
 
 def _forget_pool() -> None:
@@ -30,21 +28,6 @@ def _forget_pool() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pool)
-
-
-def cpu_float(t: torch.Tensor) -> bool:
-    """Whether the compiled loops read t as it is (a numpy view, no copy, no cast): a CPU float32 or float64 tensor.
-    The one test every compiled path asks before it takes over from torch."""
-    return _compiled_paths and t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
-
-
-def use_compiled_paths(enabled: bool) -> bool:
-    """Switch every compiled CPU path on or off (returns the previous setting). Off, a CPU runs the torch code a GPU
-    runs, operator for operator: `tools/count_syncs.py` counts that path's host syncs and `tools/bench_train.py
-    --accelerator-path` times its host cost on any machine."""
-    global _compiled_paths
-    previous, _compiled_paths = _compiled_paths, bool(enabled)
-    return previous
 
 
 def row_chunks(n: int, min_chunk: int | None = None) -> list[tuple[int, int]]:

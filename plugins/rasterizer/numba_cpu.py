@@ -29,7 +29,7 @@ from torch import Tensor
 
 from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
 from framework.registry import register
-from framework.rig.compiled_threads import cpu_float
+from framework.runtime import cpu_float
 from framework.splat.projection import Projection
 from framework.types import BlendWeights, Cameras, RenderOutput
 from plugins.rasterizer.torch_ref import TorchRefRasterizer
