@@ -50,9 +50,10 @@ def exact_float32() -> Iterator[None]:
     to a 10-bit mantissa. SSIM subtracts squared means from filtered squares, which turns that rounding into an error
     of its own size: emulated on a CPU (tools/emulate_tf32.py), TF32 moved the mean SSIM of a 512^2 image pair by
     1.9e-2, float32 by 3e-6. The SSIM metric and D-SSIM loss and the LPIPS network run in this block. A CPU ignores
-    the flag. Matrix products are TF32 only under `torch.set_float32_matmul_precision("high")`, which no entry point
-    sets (it moved LBS translations by 1.4 mm in the same emulation); their flag is left alone here, because torch
-    refuses to report the matmul precision once its legacy and new switches have both been set, and Lightning asks."""
+    the flag. Matrix products are TF32 only under `torch.set_float32_matmul_precision("high")`, which training keeps
+    at "highest" (TF32 moved LBS translations by 1.5 mm in the same emulation); their flag is left alone here,
+    because torch refuses to report the matmul precision once its legacy and new switches have both been set, and
+    Lightning asks."""
     conv = torch.backends.cudnn.allow_tf32
     torch.backends.cudnn.allow_tf32 = False
     try:

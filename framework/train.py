@@ -134,7 +134,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     out_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     # float32 matrix products stay float32 on a GPU: "high" would let them round to TF32's 10-bit mantissa, which moves
-    # the LBS blend's translations by ~1.4 mm (tools/emulate_tf32.py). Convolutions: framework.runtime.exact_float32.
+    # the LBS blend's translations by ~1.5 mm (tools/emulate_tf32.py). Convolutions: framework.runtime.exact_float32.
     torch.set_float32_matmul_precision("highest")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))

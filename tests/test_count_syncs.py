@@ -24,6 +24,9 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
         torch.nonzero(mask)  # 1 nonzero
         torch.repeat_interleave(torch.tensor([1, 2]))  # 1 repeat_interleave (no output size)
         torch.repeat_interleave(torch.tensor([1, 2]), output_size=3)  # none: the size is given
+        x.to("meta")  # 1 host-to-device copy (the meta device stands in for a GPU)
+        x.to("meta", non_blocking=True)  # none: the host does not wait
+        torch.empty(50, 3, device="meta").copy_(x)  # 1 host-to-device copy
         A = torch.eye(3).expand(4, 3, 3) + 0.01 * torch.randn(4, 3, 3)
         polar_rotation_values(A)  # well-conditioned: one check, then the Newton loop's own
         counter.step = None
@@ -33,6 +36,7 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
         by_kind[kind] += c
     assert by_kind["boolean index"] == 1 and by_kind["nonzero"] == 1 and by_kind["repeat_interleave"] == 1
     assert by_kind["tensor from Python values (host-to-device copy)"] == 2  # the two torch.tensor([1, 2])
+    assert by_kind["host-to-device copy (.to)"] == 2
     polar_sites = {s: c for (k, s), c in counter.counts.items() if "framework/rig/polar.py" in s}
     newton = sum(c for s, c in polar_sites.items() if "_rotation_newton" in s)
     entry = sum(c for s, c in polar_sites.items() if "_polar_values_entry_major" in s)

@@ -10,13 +10,16 @@ of the two. This tool runs `framework.train.run` (the real training, as `tools/b
 TorchDispatchMode that counts those operators and names the innermost framework/plugins line that called each, per
 training step (the first `--warmup` steps of each stage left out).
 
+On a GPU machine (`--profile gpu --native -- rasterizer=gsplat`) the same count sees the copies a CPU cannot: every
+`.to(device)` or `copy_` of a host tensor to the GPU without `non_blocking`.
+
 By default the compiled CPU kernels are switched off (`framework.runtime.use_compiled_paths(False)`), so a
 CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
 polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
 accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
-from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. Not counted, because a CPU
-cannot see them: `.to(device)` of a constant kept on the CPU (a no-op here, a blocking copy on a GPU); on a CUDA
-machine, `torch.cuda.set_sync_debug_mode("warn")` reports those too, as they happen.
+from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On a CPU alone `.to(device)` of a
+constant kept on the CPU is no operator at all, so only a GPU run counts those (or, as they happen,
+`torch.cuda.set_sync_debug_mode("warn")` on a CUDA machine).
 """
 
 from __future__ import annotations  # noqa: I001  (framework.train is imported before torch on purpose)
@@ -95,6 +98,21 @@ def _operator_group(site: str) -> str:
     return "the rest of the step"
 
 
+def _crosses_from_host(func, args, kwargs) -> bool:
+    """Whether this operator copies a host tensor to another device without `non_blocking` (a `.to(device)` or
+    `copy_` from the CPU): on a GPU, a copy from pageable memory that waits for the queue. Seen only where a second
+    device exists (a GPU machine, or a test's meta device): on a CPU alone `.to("cpu")` is no operator at all."""
+    if func is aten._to_copy.default:
+        source, target = args[0], kwargs.get("device")
+    elif func is aten.copy_.default:
+        source, target = args[1], args[0].device
+    else:
+        return False
+    if target is None or kwargs.get("non_blocking") or (len(args) > 2 and args[2] is True):
+        return False
+    return source.device.type == "cpu" and torch.device(target).type != "cpu"
+
+
 class SyncCounter(TorchDispatchMode):
     """Counts host-sync operators by (kind, site) for the step in `self.step` (None: outside counted steps)."""
 
@@ -114,6 +132,8 @@ class SyncCounter(TorchDispatchMode):
             kind = "boolean index"
         if func is aten.repeat_interleave.Tensor and (kwargs or {}).get("output_size") is not None:
             kind = None  # the output size is given: nothing to wait for
+        if _crosses_from_host(func, args, kwargs or {}):
+            kind = "host-to-device copy (.to)"
         if self.step is not None:
             site = _site()
             if func is aten.lift_fresh.default and site.startswith(DATA_FILES):

@@ -139,17 +139,18 @@ class Avatar(nn.Module):
         self.pose_compiled = False  # `compile_pose_path`
 
     def compile_pose_path(self) -> None:
-        """Hand the corrector F_a and the deformer (weights, LBS, polar, SH frames) to `torch.compile` with dynamic
-        shapes, in place (`nn.Module.compile`: parameter names and checkpoints stay as they are).
+        """Hand the forward passes of the corrector F_a and the deformer (weights, LBS, polar, SH frames) to
+        `torch.compile` with dynamic shapes, in place: the modules, their parameter names and checkpoints stay as they
+        are, and hooks (a benchmark's timers) run outside the compiled code.
 
-        Why: a GPU step of this model is bound by the host issuing ~2000 small operators (tools/count_syncs.py), not
-        by the device; compiled, the pose path's element-wise chains run as a few fused kernels forward and backward.
-        Its data-dependent parts (the polar decomposition's convergence checks and SVD fallback, the compiled CPU
-        loops) stay eager between the compiled pieces. Densification changes N every few hundred steps: dynamic shapes
-        compile once per SH degree and stage, not per N."""
+        Why: a GPU training step issues ~1700 small operators (tools/count_syncs.py), each a kernel launch; compiled,
+        the pose path's element-wise chains can run as a few fused kernels forward and backward. Its data-dependent
+        parts (the polar decomposition's convergence checks and SVD fallback, the compiled CPU loops) stay eager
+        between the compiled pieces. Dynamic shapes, because densification changes N. Off by default: on a CPU it
+        gained nothing (docs/results/speed.md, eighteenth pass), and no GPU has timed it yet."""
         for module in (self.corrector, self.deformer):
             if module is not None:
-                module.forward = torch.compile(module.forward, dynamic=True)  # hooks (timers) stay outside
+                module.forward = torch.compile(module.forward, dynamic=True)
         self.pose_compiled = True
 
     @property
