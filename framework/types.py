@@ -74,8 +74,14 @@ class Cameras:
     def device(self) -> torch.device:
         return self.K.device
 
-    def to(self, device: torch.device | str, dtype: torch.dtype | None = None) -> Cameras:
-        return Cameras(self.K.to(device, dtype), self.world_to_cam.to(device, dtype), self.width, self.height)
+    def to(self, device: torch.device | str, dtype: torch.dtype | None = None, non_blocking: bool = False) -> Cameras:
+        K, w2c = (t.to(device, dtype, non_blocking=non_blocking) for t in (self.K, self.world_to_cam))
+        return Cameras(K, w2c, self.width, self.height)
+
+    def pin_memory(self) -> Cameras:
+        """In page-locked host memory (a DataLoader with `pin_memory=True` calls this), so the copy to a GPU can run
+        without the host waiting for it."""
+        return Cameras(self.K.pin_memory(), self.world_to_cam.pin_memory(), self.width, self.height)
 
     def centers(self) -> Tensor:
         """Camera centres in world coordinates, [C, 3]."""
@@ -150,16 +156,26 @@ class FrameBatch:
     betas: Tensor | None = None  # [B, S] shape parameters where the body model uses them
     view: Tensor | None = None  # [B] long, camera index in the rig
 
-    def to(self, device: torch.device | str) -> FrameBatch:
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> FrameBatch:
+        """On `device`. `non_blocking` from page-locked memory (`pin_memory`) lets the host queue the step's kernels
+        while the copy runs (training on a GPU); from ordinary memory the copy waits for the device either way."""
+        return self._map(lambda x: x.to(device, non_blocking=non_blocking),
+                         self.cameras.to(device, non_blocking=non_blocking))  # fmt: skip
+
+    def pin_memory(self) -> FrameBatch:
+        """In page-locked host memory (a DataLoader with `pin_memory=True` calls this in its pinning thread)."""
+        return self._map(lambda x: x.pin_memory(), self.cameras.pin_memory())
+
+    def _map(self, move, cameras: Cameras) -> FrameBatch:
         def mv(x):
-            return None if x is None else x.to(device)
+            return None if x is None else move(x)
 
         return FrameBatch(
-            image=self.image.to(device),
-            mask=self.mask.to(device),
-            boundary=self.boundary.to(device),
-            cameras=self.cameras.to(device),
-            frame=self.frame.to(device),
+            image=move(self.image),
+            mask=move(self.mask),
+            boundary=move(self.boundary),
+            cameras=cameras,
+            frame=move(self.frame),
             pose=mv(self.pose),
             root=mv(self.root),
             betas=mv(self.betas),

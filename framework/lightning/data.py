@@ -102,6 +102,8 @@ class FrameDataModule(L.LightningDataModule):
             shuffle=shuffle,
             num_workers=self.num_workers,
             collate_fn=collate_frames,
+            # page-locked batches (FrameBatch.pin_memory) reach a GPU without the host waiting for the copy
+            pin_memory=torch.cuda.is_available(),
             persistent_workers=self.num_workers > 0,
             generator=torch.Generator().manual_seed(self.seed),  # worker seeds drawn here, not from the global RNG
         )
