@@ -1,5 +1,5 @@
 """Training batches reach a GPU without the host waiting: the DataLoader pins them (`FrameBatch.pin_memory`, every
-tensor and the cameras'), and the module moves them with `non_blocking` to CUDA only. A CPU cannot pin memory, so
+tensor and the cameras'), and the data module moves them with `non_blocking` to CUDA only. A CPU cannot pin memory, so
 the CPU tests record the calls; the gpu test moves a pinned batch for real and compares the values."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from framework.lightning.module import SplatModule
+from framework.lightning.data import FrameDataModule
 from framework.types import Cameras, FrameBatch
 
 NEEDS_CUDA = {"condition": not torch.cuda.is_available(), "reason": "needs a CUDA device"}
@@ -46,7 +46,7 @@ def test_pin_memory_pins_every_tensor_and_keeps_the_values(monkeypatch) -> None:
 def test_module_moves_batches_non_blocking_to_cuda_only(monkeypatch, device: str, expected: bool) -> None:
     calls = []
     monkeypatch.setattr(FrameBatch, "to", lambda self, dev, non_blocking=False: calls.append((dev, non_blocking)))
-    SplatModule.transfer_batch_to_device(object(), _batch(), torch.device(device), 0)  # FrameBatch: no super() call
+    FrameDataModule.transfer_batch_to_device(object(), _batch(), torch.device(device), 0)  # FrameBatch: no super()
     assert calls == [(torch.device(device), expected)]
 
 

@@ -112,6 +112,14 @@ class FrameDataModule(L.LightningDataModule):
         trainer = getattr(self, "trainer", None)
         return int(trainer.global_step) if trainer is not None else 0
 
+    def transfer_batch_to_device(self, batch, device: torch.device, dataloader_idx: int):
+        """A FrameBatch goes to the device with `non_blocking`: its tensors are page-locked on a CUDA machine (the
+        DataLoader pins them), so the host queues the step while the copy runs. Lightning passes `non_blocking` only
+        to plain tensors, not to the objects it moves with their own `to`."""
+        if isinstance(batch, FrameBatch):
+            return batch.to(device, non_blocking=device.type == "cuda")
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
     def train_dataloader(self) -> DataLoader:
         # A long epoch: validation and checkpoints run on step counts, and a resumed run continues the step count and
         # the order of frames (StepSampler).

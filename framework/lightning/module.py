@@ -156,14 +156,6 @@ class SplatModule(L.LightningModule):
         and other schedules follow it, so `python -m framework.evaluate` renders what training evaluated)."""
         return self.global_step if self._trainer is not None else self._loaded_steps
 
-    def transfer_batch_to_device(self, batch, device: torch.device, dataloader_idx: int):
-        """A FrameBatch goes to the device with `non_blocking`: its tensors are page-locked on a CUDA machine (the
-        DataLoader pins them), so the host queues the step while the copy runs. Lightning passes `non_blocking` only
-        to plain tensors, not to the objects it moves with their own `to`."""
-        if isinstance(batch, FrameBatch):
-            return batch.to(device, non_blocking=device.type == "cuda")
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)
-
     def render_batch(self, batch: FrameBatch, step: int | None = None):
         step = self.trained_steps() if step is None else step
         return self.avatar(batch, sh_degree=self.sh_degree(step))
