@@ -33,6 +33,7 @@ def constant_on(constant: Tensor, device: torch.device | str, dtype: torch.dtype
 
 
 @functools.lru_cache(maxsize=256)
-def index_on(values: tuple[int, ...], device: torch.device) -> Tensor:
-    """A long tensor of these Python integers on `device`, made once per (values, device)."""
-    return torch.tensor(values, dtype=torch.long, device=device)
+def values_on(values: tuple[float, ...], device: torch.device, dtype: torch.dtype = torch.long) -> Tensor:
+    """A tensor of these Python numbers on `device` (an index by default), made once per (values, device, dtype):
+    never write to the result."""
+    return torch.tensor(values, dtype=dtype, device=device)

@@ -72,16 +72,14 @@ def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Te
     Why: four kernels each way (outer product, gather, scale, sum) where the entry-by-entry formulas issue one kernel
     per product and sum, ~25-40 forward and as many backward. A GPU pays a launch for every kernel, and a training step
     is made of ~1700 small ones (tools/count_syncs.py), so the accelerators take this form; a CPU runs the
-    entry-by-entry one faster (`quat_to_rotmat` as a gathered
-    outer product: 0.72 against 0.55 ms forward+backward at 8k on a 2-core CPU). Element-wise products and sums only,
-    so no matrix product rounds to TF32."""
+    entry-by-entry one faster (`quat_to_rotmat` as a gathered outer product: 0.72 against 0.55 ms forward+backward at
+    8k on a 2-core CPU). Element-wise products and sums only, so no matrix product rounds to TF32."""
+    index, coef = constant_on(index, a.device), constant_on(coef, a.device, a.dtype)
     if dim == 0:  # [4, N] -> [len, N]
         outer = (a.unsqueeze(1) * b.unsqueeze(0)).flatten(0, 1)  # [16, N]
-        index, coef = constant_on(index, outer.device), constant_on(coef, outer.device, outer.dtype)
         terms = outer.index_select(0, index) * coef.unsqueeze(-1)  # [4 len, N]
         return terms.view(-1, 4, terms.shape[-1]).sum(1)
     outer = (a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2)  # [..., 16]
-    index, coef = constant_on(index, outer.device), constant_on(coef, outer.device, outer.dtype)
     terms = outer.index_select(-1, index) * coef  # [..., 4 len]
     return terms.unflatten(-1, (-1, 4)).sum(-1)
 

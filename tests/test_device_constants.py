@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from framework.device_constants import constant_on, index_on
+from framework.device_constants import constant_on, values_on
 
 
 def test_constant_is_copied_once_per_dtype_and_never_for_its_own() -> None:
@@ -20,6 +20,8 @@ def test_constant_is_copied_once_per_dtype_and_never_for_its_own() -> None:
 
 
 def test_index_is_made_once() -> None:
-    idx = index_on((3, 1, 2), torch.device("cpu"))
+    idx = values_on((3, 1, 2), torch.device("cpu"))
     assert idx.dtype == torch.long and idx.tolist() == [3, 1, 2]
-    assert index_on((3, 1, 2), torch.device("cpu")) is idx
+    assert values_on((3, 1, 2), torch.device("cpu")) is idx
+    size = values_on((64.0, 48.0), torch.device("cpu"), torch.float32)
+    assert size.dtype == torch.float32 and size.tolist() == [64.0, 48.0]

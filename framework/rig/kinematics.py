@@ -16,7 +16,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from framework.device_constants import constant_on, index_on
+from framework.device_constants import constant_on, values_on
 from framework.geometry import axis_angle_to_rotmat
 
 _HOMOGENEOUS_ROW = torch.tensor([0.0, 0.0, 0.0, 1.0])  # the last row of every 4x4 transform
@@ -109,7 +109,7 @@ def forward_kinematics_rotmat(rotations: Tensor, joints: Tensor, parents: Tensor
         raise ValueError(f"parents has {len(key)} joints but pose has {J}.")
     steps = _ancestor_steps(key)
     dev, dtype = rotations.device, rotations.dtype
-    parent_rows = index_on(tuple(p if p >= 0 else J for p in key) + (J,), dev)  # [J + 1]
+    parent_rows = values_on(tuple(p if p >= 0 else J for p in key) + (J,), dev)  # [J + 1]
     padded = torch.cat([joints, joints.new_zeros(B, 1, 3)], dim=1)  # [B, J + 1, 3], row J: the origin
     offsets = padded - padded[:, parent_rows]  # [B, J + 1, 3] = j_k - j_parent (j_root at the root, 0 in row J)
     eye = torch.eye(3, dtype=dtype, device=dev).expand(B, 1, 3, 3)
@@ -117,7 +117,7 @@ def forward_kinematics_rotmat(rotations: Tensor, joints: Tensor, parents: Tensor
     top = torch.cat([torch.cat([rotations, eye], dim=1), offsets.unsqueeze(-1)], dim=-1)  # [B, J + 1, 3, 4]
     A = torch.cat([top, bottom], dim=-2)  # [B, J + 1, 4, 4] local transforms; row J: the identity
     for ancestor in steps:
-        A = A[:, index_on(ancestor, dev)] @ A  # relative to the next 2^s ancestors up
+        A = A[:, values_on(ancestor, dev)] @ A  # relative to the next 2^s ancestors up
     G = A[:, :J]  # [B, J, 4, 4]
     to_rest = torch.cat([torch.cat([eye.expand(B, J, 3, 3), -joints.unsqueeze(-1)], dim=-1), bottom[:, :J]], dim=-2)
     return G, G @ to_rest  # T = G @ translate(-j)

@@ -9,12 +9,12 @@ Culled entries keep finite values (and finite gradients, which are zero) so no N
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from framework.device_constants import values_on
 from framework.geometry import quat_to_rotmat_entry_major
 from framework.splat.contract import ALPHA_MIN, EPS2D, FAR_PLANE, NEAR_PLANE
 
@@ -33,13 +33,6 @@ class Projection:
     half_extents: Tensor  # [C, N, 2] float half width/height of the alpha >= 1/255 box in pixels (no grad)
     radii: Tensor  # [C, N] int32 ceil(max half extent); 0 where culled
     valid: Tensor  # [C, N] bool
-
-
-@functools.lru_cache(maxsize=64)
-def _image_size(width: int, height: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """[width, height] as a tensor, made once per size, dtype and device (`framework.device_constants`: built per call
-    it would be a host-to-device copy on a GPU)."""
-    return torch.tensor([float(width), float(height)], dtype=dtype, device=device)
 
 
 def project_gaussians(
@@ -69,7 +62,7 @@ def project_gaussians(
 
     # Per camera: fx, fy, cx, cy and the limits of x/z, y/z in the field of view widened by FOV_MARGIN (3DGS/gsplat)
     f, c = K.diagonal(dim1=1, dim2=2)[:, :2], K[:, :2, 2]  # [C, 2] each (views: no index tensors to copy)
-    size = _image_size(width, height, K.dtype, K.device)  # [2]
+    size = values_on((float(width), float(height)), K.device, K.dtype)  # [2], made once per size and device
     lo = (c + (0.5 * FOV_MARGIN) * size).div(f).neg()  # [C, 2]
     hi = ((1.0 + 0.5 * FOV_MARGIN) * size - c).div(f)
     fx, fy, cx, cy, u_lo, v_lo, u_hi, v_hi = torch.cat([f, c, lo, hi], dim=1).unsqueeze(-1).unbind(1)  # [C, 1] each
