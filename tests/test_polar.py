@@ -9,10 +9,20 @@ import torch
 
 from framework.geometry import axis_angle_to_rotmat
 from framework.rig.polar import polar_decompose, polar_rotation, polar_rotation_values
+from framework.runtime import use_compiled_paths
 
 torch.manual_seed(0)
 D64 = torch.float64
 EYE = torch.eye(3, dtype=D64)
+
+
+@pytest.fixture(autouse=True, params=["cpu", "accelerator"])
+def code_path(request):
+    """Every test runs both forms of the Newton routing: the CPU's (checked after each step) and an accelerator's
+    (fixed steps, then one host read), which `use_compiled_paths(False)` makes a CPU run."""
+    previous = use_compiled_paths(request.param == "cpu")
+    yield request.param
+    use_compiled_paths(previous)
 
 
 def svd_rotation(A: torch.Tensor) -> torch.Tensor:
@@ -152,3 +162,36 @@ def test_non_finite_matrices_give_the_identity_and_leave_the_others_alone():
     assert torch.isfinite(R).all()
     assert torch.equal(R[bad], torch.eye(3).expand(2, 3, 3))
     assert (R[~bad].double() - svd_rotation(A[~bad].double())).abs().max() < 1e-6
+
+
+def _count_host_reads(fn) -> int:
+    """Host reads of tensor values (`item`, `float`, `bool`) while fn runs."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Reads(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func is torch.ops.aten._local_scalar_dense.default:
+                Reads.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        fn()
+    return Reads.n
+
+
+@pytest.mark.parametrize("ratio, reads_on_accelerator", [(0.7, 1), (0.1, 1), (0.01, None)])
+def test_accelerator_form_reads_the_host_once_for_well_conditioned_blends(code_path, ratio, reads_on_accelerator):
+    """Rotations times diag(1, (1 + r) / 2, r): the accelerator's form converges in its fixed steps down to r = 0.1
+    and reads one value; at r = 0.01 it falls back to the checked iteration, which still matches the SVD."""
+    g = torch.Generator().manual_seed(3)
+    R = axis_angle_to_rotmat(torch.randn(200, 3, generator=g, dtype=D64))
+    A = (R @ torch.diag(torch.tensor([1.0, (1 + ratio) / 2, ratio], dtype=D64))).float()
+    out = []
+    reads = _count_host_reads(lambda: out.append(polar_rotation_values(A)))
+    assert (out[0].double() - svd_rotation(A.double())).abs().max() < 2e-6
+    if code_path == "accelerator" and reads_on_accelerator is not None:
+        assert reads == reads_on_accelerator
+    else:
+        assert reads >= 2  # the routing test and at least one convergence check

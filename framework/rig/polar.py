@@ -29,18 +29,22 @@ from torch import Tensor
 from framework.device_constants import constant_on
 from framework.geometry import products_3x3
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
+from framework.runtime import cpu_float
 
 _NEWTON_MAX_ITERS = 30
 # The iteration ends when the step it just took, d = max |X_k+1 - X_k|, predicts a next step below this tolerance. The
 # convergence is quadratic (|X_k+2 - X_k+1| ~ d^2 / 2 once X is near orthogonal), so d^2 < tol suffices and the step
 # that would only confirm it is not taken.
 _NEWTON_TOL = {torch.float64: 1e-13, torch.float32: 1e-6}
-# Iterations before convergence is first checked. Each check is a host sync: on an accelerator that stalls the queue,
-# so the first three run unchecked; on the CPU it costs nothing, and the iteration ends as soon as it has converged.
-# LBS blends are close to orthogonal (smallest singular value 0.70-0.999 over the walking avatar's frames), so that is
-# after 2-4 steps (32 training and novel-pose frames: 2 steps in 2, 3 in 11, 4 in 19, when every step was confirmed by
-# a further one; with the predicted stop above, one step fewer: 3 instead of 4 on the 400-step avatar's blends).
-_NEWTON_UNCHECKED_ACCELERATOR = 3
+# On an accelerator every check is a host sync that drains the queue, so there the iteration takes this many steps
+# unchecked and then reads ONE value on the host: whether every matrix was fit for Newton (the routing test below) and
+# the last step predicts convergence. LBS blends are close to orthogonal (smallest singular value 0.70-0.999 over the
+# walking avatar's frames); the checked iteration stops after 1-3 steps on them (32 training and novel-pose frames:
+# 3 steps at most with the predicted stop), so 4 steps pass the check with a step to spare, and a step more costs
+# about ten element-wise kernels where a sync waits for everything queued. Measured in float32: 4 steps converge for
+# singular-value ratios down to 0.1 (0.7: 3 steps, 0.01: 5). Batches that need more fail the read and take the
+# checked path, which costs a sync per step as on the CPU.
+_NEWTON_STEPS_ACCELERATOR = 4
 
 
 def _cofactor_index() -> Tensor:
@@ -76,27 +80,50 @@ def _rotation_svd(A: Tensor) -> Tensor:
     return U @ Vh
 
 
-def _rotation_newton(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor) -> Tensor:
-    """Orthogonal polar factor of well-conditioned matrices with det > 0, entry-major [9, M] -> [9, M] in X's dtype.
-
-    C, det, norm_sq: X's cofactors [9, M], determinants [M] and squared Frobenius norms [M], which the caller has
-    computed for its singularity test. X^-T = C / det, so a step is X <- (z / 2) X + (1 / (2 z det)) C with
+def _newton_step(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor) -> Tensor:
+    """One scaled Newton step on entry-major X [9, M] -> [9, M], given X's cofactors [9, M], determinants [M] and
+    squared Frobenius norms [M]. X^-T = C / det, so the step is X <- (z / 2) X + (1 / (2 z det)) C with
     z = sqrt(|X^-1| / |X|) = (|C|^2 / |X|^2)^(1/4) / sqrt(det): per-matrix scalars and one fused multiply-add. (In
     that order, float32 stays in range for |X| up to ~1e9: det^2 |X|^2 would overflow from |X| ~ 1e5.)"""
+    zeta = (C.square().sum(0) / norm_sq).sqrt().sqrt() * det.rsqrt()  # [M] (sqrt twice: pow(0.25) is 4x slower)
+    return torch.addcmul(X * (0.5 * zeta), C, 0.5 / (zeta * det))
+
+
+def _cofactors_det_norm(X: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Cofactors [9, M], determinants [M] and squared Frobenius norms [M] of X [9, M]."""
+    C = _cofactors(X)
+    return C, (X[:3] * C[:3]).sum(0), X.square().sum(0)
+
+
+def _rotation_newton(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor) -> Tensor:
+    """Orthogonal polar factor of well-conditioned matrices with det > 0, entry-major [9, M] -> [9, M] in X's dtype,
+    checked after every step (a host read each; free on a CPU). C, det, norm_sq: X's, which the caller has computed
+    for its singularity test."""
     tol = _NEWTON_TOL.get(X.dtype, 1e-6)
-    unchecked = 0 if X.device.type == "cpu" else _NEWTON_UNCHECKED_ACCELERATOR
     for it in range(_NEWTON_MAX_ITERS):
         if it:
-            C = _cofactors(X)
-            det = (X[:3] * C[:3]).sum(0)  # [M]
-            norm_sq = X.square().sum(0)  # [M]
-        zeta = (C.square().sum(0) / norm_sq).sqrt().sqrt() * det.rsqrt()  # [M] (sqrt twice: pow(0.25) is 4x slower)
-        X_new = torch.addcmul(X * (0.5 * zeta), C, 0.5 / (zeta * det))
-        done = it >= unchecked and float((X_new - X).abs().amax()) ** 2 < tol
+            C, det, norm_sq = _cofactors_det_norm(X)
+        X_new = _newton_step(X, C, det, norm_sq)
+        done = float((X_new - X).abs().amax()) ** 2 < tol
         X = X_new
         if done:
             break
     return X
+
+
+def _rotation_newton_one_read(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor, good: Tensor) -> Tensor | None:
+    """The accelerator's form of `_polar_values_entry_major`'s common case: `_NEWTON_STEPS_ACCELERATOR` unchecked
+    steps on every matrix, then one host read of "every matrix good and converged". Returns the polar factors
+    [9, M], or None when that read is False (a matrix for the SVD, a non-finite entry, or slow convergence: the
+    caller then takes the checked path from the start; the steps here were spent on nothing)."""
+    tol = _NEWTON_TOL.get(X.dtype, 1e-6)
+    for it in range(_NEWTON_STEPS_ACCELERATOR):
+        if it:
+            C, det, norm_sq = _cofactors_det_norm(X)
+        X_new = _newton_step(X, C, det, norm_sq)
+        last_step = (X_new - X).abs().amax()  # [], NaN where a matrix was not fit for Newton
+        X = X_new
+    return X if bool((last_step.square() < tol) & good.all()) else None
 
 
 def _finite_or_identity(X: Tensor) -> Tensor:
@@ -110,9 +137,7 @@ def _finite_or_identity(X: Tensor) -> Tensor:
 def _newton_inputs(X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Cofactors [9, M], determinants [M], squared norms [M] of X [9, M], and which matrices Newton may take [M]:
     det > tol * scale^3 (well-conditioned, det > 0)."""
-    C = _cofactors(X)  # [9, M]
-    det = (X[:3] * C[:3]).sum(0)  # [M]
-    norm_sq = X.square().sum(0)  # [M]
+    C, det, norm_sq = _cofactors_det_norm(X)  # [9, M], [M], [M]
     mean_sq = norm_sq / 3
     return C, det, norm_sq, det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()
 
@@ -144,8 +169,13 @@ def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dt
     if method == "svd":
         return _rotation_svd(_finite_or_identity(Xc).t().reshape(-1, 3, 3)).reshape(M, 9).t().to(out_dtype)
     C, det, norm_sq, good = _newton_inputs(Xc)
-    # The common case, one host sync: `good` is False for any matrix with a NaN or inf entry, or whose squares
-    # overflow (its det or scale is then NaN or inf), so all-good also means all finite.
+    # The common case: `good` is False for any matrix with a NaN or inf entry, or whose squares overflow (its det or
+    # scale is then NaN or inf), so all-good also means all finite. On an accelerator (where the CPU's compiled paths
+    # are off) it costs one host read in all; on a CPU a read per step, each free, and no step more than needed.
+    if not cpu_float(Xc):
+        R = _rotation_newton_one_read(Xc, C, det, norm_sq, good)
+        if R is not None:
+            return R.to(out_dtype)
     if bool(good.all()):
         return _rotation_newton(Xc, C, det, norm_sq).to(out_dtype)
     Xc = _finite_or_identity(Xc)
