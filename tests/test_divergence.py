@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from errors_table import check_documented, normalise
 from test_training import _load, _run_dirs, _train
@@ -19,9 +20,15 @@ def _all_finite(ckpt: dict) -> bool:
     return all(bool(torch.isfinite(v).all()) for v in ckpt["state_dict"].values() if v.is_floating_point())
 
 
-def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_path):
+# read before each update (a CPU's default), or after the step with the update skipped on the device (a GPU's; the
+# verdict of step 25 is read during step 26 here, and the message must name step 25 all the same)
+DEFERRED = pytest.mark.parametrize("deferred", ["false", "true"])
+
+
+@DEFERRED
+def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_path, deferred):
     proc = _train(tmp_path, "trainer.max_steps=40", "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25}",
-                  faults={})  # fmt: skip
+                  f"divergence.deferred={deferred}", faults={})  # fmt: skip
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
@@ -36,8 +43,9 @@ def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_
     assert not (ckpt_dir / "final.ckpt").exists() and not (_run_dirs(tmp_path)[-1] / "eval").exists()
 
 
-def test_nan_gradient_rolls_back_lowers_the_learning_rates_and_finishes(tmp_path):
-    proc = _train(tmp_path, "trainer.max_steps=40", "divergence.action=rollback",
+@DEFERRED
+def test_nan_gradient_rolls_back_lowers_the_learning_rates_and_finishes(tmp_path, deferred):
+    proc = _train(tmp_path, "trainer.max_steps=40", "divergence.action=rollback", f"divergence.deferred={deferred}",
                   "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}", faults={})  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     notes = [line for line in proc.stderr.splitlines() if "training diverged" in line]

@@ -419,7 +419,8 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
 
     result = VariantResult(name, overrides)
     switch = args.steps // 2
-    base = [f"+experiment={args.experiment}", f"profile={args.profile}", *args.overrides]
+    gpu_like = ["divergence.deferred=true"] if args.accelerator_path else []  # a GPU's divergence checks too
+    base = [f"+experiment={args.experiment}", f"profile={args.profile}", *gpu_like, *args.overrides]
     forced = [f"trainer.max_steps={args.steps}", f"stages.stage1_steps={switch}", "eval.after_fit=false"]
     try:
         composed = [*base, *overrides, *forced]

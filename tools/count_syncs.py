@@ -13,11 +13,11 @@ training step (the first `--warmup` steps of each stage left out).
 On a GPU machine (`--profile gpu --native -- rasterizer=gsplat`) the same count sees the copies a CPU cannot: every
 `.to(device)` or `copy_` of a host tensor to the GPU without `non_blocking`.
 
-By default the compiled CPU kernels are switched off (`framework.runtime.use_compiled_paths(False)`), so a
-CPU runs the torch code a GPU runs; `--native` keeps this machine's own path. Two differences remain on a CPU: the
-polar decomposition's Newton loop checks convergence after every iteration on a CPU but only after the third on an
-accelerator, and the rasterizer is torch_ref's (gsplat on a GPU syncs once per render to size its tile lists); rows
-from `framework/splat/` and `plugins/rasterizer/` are therefore listed apart. On a CPU alone `.to(device)` of a
+By default the compiled CPU kernels are switched off (`framework.runtime.use_compiled_paths(False)`) and the
+divergence checks are read after the step (`divergence.deferred=true`, a GPU's default), so a CPU runs the torch code
+a GPU runs; `--native` keeps this machine's own path. One difference remains on a CPU: the rasterizer is torch_ref's
+(gsplat on a GPU syncs once per render to size its tile lists); rows from `framework/splat/` and
+`plugins/rasterizer/` are therefore listed apart. On a CPU alone `.to(device)` of a
 constant kept on the CPU is no operator at all, so only a GPU run counts those (or, as they happen,
 `torch.cuda.set_sync_debug_mode("warn")` on a CUDA machine).
 """
@@ -181,9 +181,10 @@ def main(argv: list[str] | None = None) -> None:
 
     cls.training_step = training_step
     out = tempfile.mkdtemp(prefix="count_syncs_")
+    gpu_like = [] if args.native else ["divergence.deferred=true"]  # a GPU's divergence checks too
     overrides = [f"+experiment={args.experiment}", f"profile={args.profile}", f"trainer.max_steps={args.steps}",
                  f"stages.stage1_steps={switch}", "eval.after_fit=false", "trainer.val_every=1000000",
-                 f"paths.output_dir={out}", *args.overrides]  # fmt: skip
+                 f"paths.output_dir={out}", *gpu_like, *args.overrides]  # fmt: skip
     with initialize_config_module(config_module="framework.conf", version_base=None):
         cfg = compose(config_name="train", overrides=overrides)
     try:

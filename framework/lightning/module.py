@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
 from framework.guards import PSNR_MSE_FLOOR
+from framework.lightning.deferred_checks import DeferredChecks, defers
 from framework.lightning.divergence import (
     DivergencePolicy,
     TrainingDiverged,
@@ -94,6 +95,8 @@ class SplatModule(L.LightningModule):
             raise ConfigError(str(exc)) from None
         self.lr_scale = 1.0  # lowered by every divergence rollback; saved in checkpoints
         self.rollbacks = 0
+        self._checks = DeferredChecks()  # the probes' verdicts a GPU step did not wait for
+        self._defers_checks: bool | None = None  # decided at the first step, from the optimizer and the device
 
     # ----------------------------------------------------------------------------------------------- construction
     def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
@@ -180,17 +183,30 @@ class SplatModule(L.LightningModule):
             self.densifier.step_pre_backward(params, self._densifier_optimizers(optimizer), self.densifier_state,
                                              step, info)  # fmt: skip
         self.manual_backward(total)
-        grads, values = grads_and_params(optimizer)
-        if not bool(torch.isfinite(finite_probe([total, *grads, *values]))):  # the step's one host sync
-            self._diverged(diagnose(step, total, terms, optimizer), optimizer)
-            opt.zero_grad(set_to_none=True)
-            return total.detach()
-        opt.step()
+        if self._deferred(optimizer):
+            optimizer.found_inf = self._checks.probe(step, total, terms, optimizer)  # a bad update skips on the device
+            try:
+                opt.step()
+            finally:
+                del optimizer.found_inf
+        else:
+            grads, values = grads_and_params(optimizer)
+            if not bool(torch.isfinite(finite_probe([total, *grads, *values]))):  # the step's one host sync
+                self._diverged(diagnose(step, total, terms, optimizer), optimizer)
+                opt.zero_grad(set_to_none=True)
+                return total.detach()
+            opt.step()
         opt.zero_grad(set_to_none=True)
         if self.densifier is not None:
             with torch.no_grad():
                 self.densifier.step_post_backward(params, self._densifier_optimizers(optimizer),
                                                   self.densifier_state, step, info)  # fmt: skip
+        if len(self._checks):
+            # the verdicts of earlier steps the device has finished; all of them, waiting, before a checkpoint
+            message = self._checks.first_bad(before_step=None if self._checkpoint_due(step + 1) else step)
+            if message is not None:
+                self._diverged(message, optimizer)
+                return total.detach()
         if self._checkpoint_due(step + 1) and not bool(torch.isfinite(finite_probe(grads_and_params(optimizer)[1]))):
             message = diagnose(step, total.new_zeros(()), {}, optimizer).replace("at step", "after the update of step")
             self._diverged(message, optimizer)
@@ -239,6 +255,19 @@ class SplatModule(L.LightningModule):
         last.ckpt and the end of the run; no checkpoint is saved on validation)."""
         every = int(self.cfg["callbacks"]["checkpoint_every"])
         return (every > 0 and step % every == 0) or step >= int(self.cfg["trainer"]["max_steps"])
+
+    def _deferred(self, optimizer: torch.optim.Optimizer) -> bool:
+        """Whether this run's divergence probes are read after the step instead of before the update
+        (`framework.lightning.deferred_checks`): `divergence.deferred` true, or auto on a GPU, with a fused Adam."""
+        if self._defers_checks is None:
+            want, fused = self.divergence.deferred, defers(optimizer)
+            if want is True and not fused:
+                raise ConfigError("divergence.deferred=true: the optimizer does not run fused Adam (float32 or float64 "
+                                  "parameters on a CPU or a CUDA GPU), so it cannot skip an update on the device. Set "
+                                  "divergence.deferred=auto.")  # fmt: skip
+            on_gpu = any(p.is_cuda for g in optimizer.param_groups for p in g["params"])
+            self._defers_checks = fused and (want is True or (want == "auto" and on_gpu))
+        return self._defers_checks
 
     def _last_good_checkpoint(self) -> Path | None:
         trainer = self._trainer
