@@ -195,3 +195,14 @@ def test_accelerator_form_reads_the_host_once_for_well_conditioned_blends(code_p
         assert reads == reads_on_accelerator
     else:
         assert reads >= 2  # the routing test and at least one convergence check
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_polar_reads_the_host_once_and_matches_svd(code_path):
+    """On CUDA the accelerator's form runs whatever the switch says (CUDA tensors are never the compiled paths')."""
+    A = lbs_blends(5000, joints=4, max_angle=1.0).float()
+    out = []
+    reads = _count_host_reads(lambda: out.append(polar_rotation_values(A.cuda())))
+    assert reads == 1
+    assert (out[0].double().cpu() - svd_rotation(A.double())).abs().max() < 2e-6
