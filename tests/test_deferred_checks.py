@@ -132,3 +132,18 @@ def test_config_decides_per_run_and_says_when_it_cannot():
         decide(True, unfused)
     with pytest.raises(ValueError, match=r"divergence.deferred: expected true, false or auto, found 'maybe'"):
         DivergencePolicy.from_config({"deferred": "maybe"})
+
+
+def test_training_end_reads_what_is_pending():
+    """A run stopped by its time limit can end on a step that reads no verdict: on_train_end reads them all."""
+    from types import SimpleNamespace
+
+    from framework.lightning.module import SplatModule
+
+    params, opt = _model("cpu")
+    total, terms = _backward(params, "grad")
+    run = SimpleNamespace(_checks=DeferredChecks(), optimizers=lambda: SimpleNamespace(optimizer=opt), seen=[])
+    run._checks.probe(7, total, terms, opt)
+    run._diverged = lambda message, optimizer: run.seen.append((message, optimizer))
+    SplatModule.on_train_end(run)
+    assert run.seen == [(diagnose(7, total, terms, opt), opt)] and len(run._checks) == 0

@@ -60,3 +60,15 @@ def test_nan_gradient_rolls_back_lowers_the_learning_rates_and_finishes(tmp_path
     assert last["splatrig_divergence"] == {"lr_scale": 0.5, "rollbacks": 1}
     groups = {g["name"]: g["lr"] for g in last["optimizer_states"][0]["param_groups"]}
     assert math.isclose(groups["opacity_logits"], 0.5 * 5.0e-2) and math.isclose(groups["sh0"], 0.5 * 2.5e-3)
+
+
+def test_deferred_verdict_is_read_before_the_checkpoint_that_follows_it(tmp_path):
+    """A NaN at step 29, the last before the checkpoint of step 30: the deferred form must read its verdict before that
+    checkpoint is written (without the wait it would read it during step 30, with last.ckpt already at step 30)."""
+    proc = _train(tmp_path, "trainer.max_steps=40", "divergence.deferred=true",
+                  "+loss.terms.fault={name: fault, weight: 1.0, at_step: 29}", faults={})  # fmt: skip
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "training diverged at step 29: non-finite loss term 'fault' = nan" in errors[0]
+    last = _load(_run_dirs(tmp_path)[-1] / "checkpoints" / "last.ckpt")
+    assert last["global_step"] == 20 and _all_finite(last)

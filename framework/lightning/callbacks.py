@@ -8,6 +8,7 @@ from lightning.pytorch.callbacks import Callback
 from tqdm.auto import tqdm
 
 from framework.lightning.data import collate_frames
+from framework.lightning.host_copy import HostCopy
 
 
 class StepProgressBar(Callback):
@@ -16,6 +17,7 @@ class StepProgressBar(Callback):
     def __init__(self, refresh_every: int = 10) -> None:
         self.refresh_every = refresh_every
         self.bar: tqdm | None = None
+        self._pending: HostCopy | None = None  # loss and PSNR of a refresh, on their way to the host
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.bar = tqdm(total=trainer.max_steps, initial=trainer.global_step, desc="training", unit="it",
@@ -26,9 +28,17 @@ class StepProgressBar(Callback):
             return
         self.bar.update(trainer.global_step - self.bar.n)
         if trainer.global_step % self.refresh_every == 0:
-            loss = float(outputs["loss"]) if isinstance(outputs, dict) else float(outputs)
-            self.bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{getattr(pl_module, 'last_train_psnr', 0.0):.2f}",
-                                 n=pl_module.avatar.gaussians.num, refresh=False)  # fmt: skip
+            # the values of this refresh are shown once they reach the host, without waiting for the device: at once
+            # on a CPU, at the next refresh or later on a GPU
+            loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+            psnr = getattr(pl_module, "last_train_psnr", None)
+            latest = HostCopy([loss, loss.new_zeros(()) if psnr is None else psnr])
+            landed = next((c for c in (latest, self._pending) if c is not None and c.ready()), None)
+            if landed is not None:
+                shown_loss, shown_psnr = (float(v.numpy()) for v in landed.values())
+                self.bar.set_postfix(loss=f"{shown_loss:.4f}", psnr=f"{shown_psnr:.2f}",
+                                     n=pl_module.avatar.gaussians.num, refresh=False)  # fmt: skip
+            self._pending = None if latest.ready() else latest
 
     def on_train_end(self, trainer, pl_module) -> None:
         if self.bar is not None:

@@ -25,20 +25,17 @@ import torch
 from torch import Tensor
 
 from framework.lightning.divergence import describe, finite_parts
+from framework.lightning.host_copy import HostCopy
 
 
 @dataclass
 class _Verdict:
     step: int
-    bad: Tensor  # [] bool on the host (pinned: written by the device's copy), readable once `done` has passed
-    done: torch.cuda.Event | None  # None on a CPU: the copy has already happened
-    parts: Tensor  # [T] the probe's per-tensor values, on the device (read only when `bad`)
+    bad: HostCopy  # of the [] bool verdict
+    parts: Tensor  # [T] the probe's per-tensor values, on the device (read only when bad)
     labels: list[tuple[str, str]]  # (kind, group name) per part; kind "total", "param" or "grad"
     total: Tensor  # [] the weighted loss
     terms: dict[str, Tensor]  # each [] loss term
-
-    def ready(self) -> bool:
-        return self.done is None or self.done.query()
 
 
 def defers(optimizer: torch.optim.Optimizer) -> bool:
@@ -70,14 +67,7 @@ class DeferredChecks:
                         labels.append(("grad", name))
         parts = finite_parts(tensors)  # [T]
         bad = ~torch.isfinite(parts.sum())  # []
-        done = None
-        if bad.is_cuda:
-            host = bad.to("cpu", non_blocking=True)  # into pinned memory, in stream order
-            done = torch.cuda.Event()
-            done.record()
-        else:
-            host = bad
-        self._pending.append(_Verdict(step, host, done, parts, labels, total.detach(),
+        self._pending.append(_Verdict(step, HostCopy([bad]), parts, labels, total.detach(),
                                       {k: v.detach() for k, v in terms.items()}))  # fmt: skip
         return bad.float()
 
@@ -89,12 +79,11 @@ class DeferredChecks:
         those of steps before `before_step` whose device work is done, without waiting."""
         while self._pending:
             verdict = self._pending[0]
-            if before_step is not None and (verdict.step >= before_step or not verdict.ready()):
+            if before_step is not None and (verdict.step >= before_step or not verdict.bad.ready()):
                 return None
-            if verdict.done is not None:
-                verdict.done.synchronize()
+            verdict.bad.wait()
             self._pending.popleft()
-            if bool(verdict.bad.numpy()):  # host memory the device's copy has filled: a read, not a wait
+            if bool(verdict.bad.values()[0].numpy()):
                 self._pending.clear()
                 return _message(verdict)
         return None

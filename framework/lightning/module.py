@@ -227,6 +227,14 @@ class SplatModule(L.LightningModule):
                 self.log(f"lr/{group['name']}", group["lr"], on_step=True, batch_size=1)
         return total.detach()
 
+    def on_train_end(self) -> None:
+        """Read the verdicts a deferred run has not read yet: training stopped by time or interruption can end on a step
+        that writes no checkpoint, and train.py saves one after fit."""
+        if len(self._checks):
+            message = self._checks.first_bad()
+            if message is not None:
+                self._diverged(message, self.optimizers().optimizer)
+
     def logs_this_step(self) -> bool:
         """Whether Lightning writes this training step's metrics to the logger (every `log_every_n_steps`, and on the
         last step). Scalars logged on other steps would be overwritten unseen, and ~20 `self.log` calls cost tens of
@@ -239,9 +247,10 @@ class SplatModule(L.LightningModule):
         return every > 0 and ((self.global_step + 1) % every == 0 or bool(trainer.should_stop))
 
     @property
-    def last_train_psnr(self) -> float:
-        """PSNR of the last training render (read by the progress bar when it refreshes; no host sync per step)."""
-        return 0.0 if self._last_train_psnr is None else float(self._last_train_psnr)
+    def last_train_psnr(self) -> Tensor | None:
+        """PSNR of the last training render, [] on the device (the progress bar copies it to the host when it
+        refreshes, without waiting), or None before the first step."""
+        return self._last_train_psnr
 
     def begin_stage2(self, step: int) -> None:
         """Stage 2 starts at `step`: the densifier's schedule (opacity resets) counts from here on."""
