@@ -6,8 +6,8 @@ Inf, or the sum overflows) and reads it once on the host, before the optimizer s
 the weights. On a GPU (`divergence.deferred`) the optimizer skips a bad update on the device instead and the host
 reads the scalar when the device has finished the step (`framework.lightning.deferred_checks`). On steps that write
 a checkpoint the parameters are probed once more after the update (optimizer and densifier), so a checkpoint never
-stores non-finite values. Only when a probe is non-finite does the slow path
-(`diagnose`) look at every term and group to name them.
+stores non-finite values. Only when a probe is non-finite does the slow path (`diagnose`) look at every term and
+group to name them.
 
 What happens then is `divergence.action` (conf/train.yaml):
 - `stop` (default): raise `TrainingDiverged` with one message naming the step, the loss terms and the parameter
