@@ -12,6 +12,8 @@ import math
 import torch
 from torch import Tensor
 
+from framework.device_constants import constant_on
+from framework.geometry import few_kernels
 from framework.guards import NORM_EPS
 
 SH_C0 = 0.28209479177387814
@@ -59,6 +61,8 @@ def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS) -> Tensor:
     _check_degree(degree)
     norm = dirs.norm(dim=-1, keepdim=True).clamp_min(eps)
     d = dirs / norm
+    if degree >= 2 and few_kernels(d):  # below degree 2 the entries are fewer operators than the gathers
+        return _basis_from_monomials(degree, d)
     x, y, z = d.unbind(-1)
     out = [torch.full_like(x, SH_C0)]
     if degree >= 1:
@@ -84,6 +88,76 @@ def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS) -> Tensor:
                 SH_C3[6] * x * (xx - 3.0 * yy),
             ]
     return torch.stack(out, dim=-1)
+
+
+def _monomial_tables() -> tuple[list[tuple[int, int, int]], Tensor, Tensor, Tensor, Tensor]:
+    """The monomials x^a y^b z^c of degree <= 3 in the order `_basis_from_monomials` builds them (1; x, y, z; six of
+    degree 2 from the [9] outer product d d^T; ten of degree 3 from the [18] products of those six with d), the two
+    gathers that pick them, and each basis function as three (monomial, coefficient) terms, zero-padded: [48] indices
+    and [48] float64 coefficients, basis k in entries 3k..3k+2."""
+    mono = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]
+    unit = mono[1:]
+    pairs = [(i, j) for i in range(3) for j in range(3)]  # entry 3i + j of the outer product
+    square_pick = [3 * i + j for i, j in pairs if i <= j]  # [6]
+    squares = [tuple(a + b for a, b in zip(unit[i], unit[j], strict=True)) for i, j in pairs if i <= j]
+    cube_pick, cubes = [], []
+    for p, sq in enumerate(squares):
+        for j in range(3):
+            m = tuple(a + b for a, b in zip(sq, unit[j], strict=True))
+            if m not in cubes:
+                cube_pick.append(3 * p + j)
+                cubes.append(m)
+    mono += squares + cubes  # 20
+    x, y, z = (1, 0, 0), (0, 1, 0), (0, 0, 1)
+
+    def m(*factors: tuple[int, int, int]) -> tuple[int, int, int]:
+        return tuple(sum(f[i] for f in factors) for i in range(3)) if factors else (0, 0, 0)
+
+    polynomials = [  # each basis function as {monomial: coefficient}, written out from `sh_basis`'s formulas
+        {m(): SH_C0},
+        {m(y): -SH_C1}, {m(z): SH_C1}, {m(x): -SH_C1},
+        {m(x, y): SH_C2[0]}, {m(y, z): SH_C2[1]},
+        {m(z, z): 2 * SH_C2[2], m(x, x): -SH_C2[2], m(y, y): -SH_C2[2]},
+        {m(x, z): SH_C2[3]}, {m(x, x): SH_C2[4], m(y, y): -SH_C2[4]},
+        {m(x, x, y): 3 * SH_C3[0], m(y, y, y): -SH_C3[0]},
+        {m(x, y, z): SH_C3[1]},
+        {m(y, z, z): 4 * SH_C3[2], m(x, x, y): -SH_C3[2], m(y, y, y): -SH_C3[2]},
+        {m(z, z, z): 2 * SH_C3[3], m(x, x, z): -3 * SH_C3[3], m(y, y, z): -3 * SH_C3[3]},
+        {m(x, z, z): 4 * SH_C3[4], m(x, x, x): -SH_C3[4], m(x, y, y): -SH_C3[4]},
+        {m(x, x, z): SH_C3[5], m(y, y, z): -SH_C3[5]},
+        {m(x, x, x): SH_C3[6], m(x, y, y): -3 * SH_C3[6]},
+    ]  # fmt: skip
+    index, coef = [], []
+    for poly in polynomials:
+        terms = list(poly.items()) + [((0, 0, 0), 0.0)] * (3 - len(poly))
+        index += [mono.index(t) for t, _ in terms]
+        coef += [c for _, c in terms]
+    as_long = lambda v: torch.tensor(v, dtype=torch.long)  # noqa: E731
+    return mono, as_long(square_pick), as_long(cube_pick), as_long(index), torch.tensor(coef, dtype=torch.float64)
+
+
+_MONOMIALS, _SQUARE_PICK, _CUBE_PICK, _TERM_INDEX, _TERM_COEF = _monomial_tables()
+
+
+def _basis_from_monomials(degree: int, d: Tensor) -> Tensor:
+    """`sh_basis` at unit directions d [..., 3] as a gather of monomials and a weighted sum. At degree 3 it issues 23
+    operators forward and 50 backward (about half of them views), where the entry-by-entry polynomial issues 55 and
+    132 (degree 2: 18 and 38 against 25 and 65; degrees 0 and 1 keep the entries, 7 / 0 and 10 / 25 operators): on a
+    GPU each is a launch or at least a dispatch. The CPU keeps the entry form, which its compiled paths
+    mirror. No matrix product, so TF32 cannot touch it. Equal to the entry form up to float rounding
+    (tests/test_sh_basis.py)."""
+    k, parts = num_sh_bases(degree), [torch.ones_like(d[..., :1]), d]  # [..., 1], [..., 3]
+    if degree >= 2:
+        squares = (d.unsqueeze(-1) * d.unsqueeze(-2)).flatten(-2)  # [..., 9]
+        squares = squares.index_select(-1, constant_on(_SQUARE_PICK, d.device))  # [..., 6]
+        parts.append(squares)
+        if degree >= 3:
+            cubes = (squares.unsqueeze(-1) * d.unsqueeze(-2)).flatten(-2)  # [..., 18]
+            parts.append(cubes.index_select(-1, constant_on(_CUBE_PICK, d.device)))  # [..., 10]
+    mono = torch.cat(parts, dim=-1)  # [..., 1 + 3 + 6 + 10 up to the degree]
+    terms = mono.index_select(-1, constant_on(_TERM_INDEX, d.device)[: 3 * k])  # [..., 3k]
+    terms = terms * constant_on(_TERM_COEF, d.device, d.dtype)[: 3 * k]
+    return terms.unflatten(-1, (k, 3)).sum(-1)  # [..., k]
 
 
 def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
