@@ -15,6 +15,7 @@ from framework.geometry import (
     axis_angle_to_rotmat,
     few_kernels,
     quat_multiply,
+    quat_normalize,
     quat_to_rotmat,
     quat_to_rotmat_entry_major,
     rotmat_to_quat,
@@ -127,3 +128,29 @@ def test_quat_multiply_composes_rotations_in_both_layouts() -> None:
     some = (a[:5].clone().requires_grad_(), b[:5].clone().requires_grad_())
     assert torch.autograd.gradcheck(quat_multiply, some)
     assert torch.autograd.gradcheck(lambda x, y: quat_multiply(x.t(), y.t(), dim=0), some)
+
+
+@pytest.mark.parametrize("dim", [-1, 0])
+def test_quat_normalize_values_and_gradients_against_the_plain_formula(dim) -> None:
+    """q / |q| differentiated by autograd in float64 is the reference (the few-kernel form has its own backward);
+    gradcheck on top, and a zero quaternion gives the identity with a zero gradient."""
+    g = torch.Generator().manual_seed(4)
+    q = torch.randn(50, 4, dtype=torch.float64, generator=g)
+    q[3] = 0.0
+    q = q if dim == -1 else q.t().contiguous()
+    up = torch.randn(q.shape, dtype=torch.float64, generator=g)
+    x = q.clone().requires_grad_()
+    (grad,) = torch.autograd.grad((quat_normalize(x, dim=dim) * up).sum(), x)
+    ref_x = q.clone().requires_grad_()
+    norm = ref_x.norm(dim=dim, keepdim=True)
+    keep = (norm > 1e-12).to(q.dtype)  # the zero row: identity, no gradient
+    identity = torch.zeros_like(q)
+    identity.select(dim, 0).fill_(1.0)
+    ref = keep * ref_x / norm.clamp_min(1e-300) + (1 - keep) * identity
+    (ref_grad,) = torch.autograd.grad((ref * up).sum(), ref_x)
+    assert torch.allclose(quat_normalize(q, dim=dim), ref, atol=1e-15)
+    assert torch.allclose(grad, ref_grad, atol=1e-13)
+    zero_row = grad[3] if dim == -1 else grad[:, 3]
+    assert (zero_row == 0).all() and (grad.abs().sum(dim) > 0).sum() == 49
+    small = (q[4:10] if dim == -1 else q[:, 4:10]).clone().requires_grad_()  # away from the zero one
+    assert torch.autograd.gradcheck(lambda t: quat_normalize(t, dim=dim), (small,))
