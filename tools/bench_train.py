@@ -76,6 +76,7 @@ VARIANTS: dict[str, list[str]] = {
     "torch_skinning": ["deformer.compiled_skinning=false"],
     "kornia_ssim": ["+loss.terms.dssim.compiled=false"],
     "compile_pose": ["compile.pose=true"],
+    "checks_before_update": ["divergence.deferred=false"],  # a GPU's divergence check read before each update
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "torch_skinning", "polar_float64"]
 
