@@ -264,10 +264,9 @@ def _rodrigues(aa: Tensor, derivatives: bool = False) -> tuple[Tensor, ...]:
     small = theta2 < AXIS_ANGLE_TAYLOR_SQ
     theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
     theta = torch.sqrt(theta2_safe)
-    cos = torch.cos(theta)
-    # sin(t)/t and (1-cos(t))/t^2 with Taylor expansions near zero
+    # sin(t)/t and (1-cos(t))/t^2 with Taylor expansions near zero (in this order: autograd's CPU gradients sum in it)
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - cos) / theta2_safe)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2_safe)
     x, y, z = aa.unbind(-1)
     zero = torch.zeros_like(x)
     K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*aa.shape[:-1], 3, 3)
@@ -275,7 +274,7 @@ def _rodrigues(aa: Tensor, derivatives: bool = False) -> tuple[Tensor, ...]:
     R = eye + a[..., None] * K + b[..., None] * (K @ K)
     if not derivatives:
         return (R,)
-    a_s = torch.where(small, torch.full_like(theta2, -1 / 6), (cos - a) / (2 * theta2_safe))
+    a_s = torch.where(small, torch.full_like(theta2, -1 / 6), (torch.cos(theta) - a) / (2 * theta2_safe))
     b_s = torch.where(small, torch.full_like(theta2, -1 / 24), (a - 2 * b) / (2 * theta2_safe))
     return R, K, a, b, a_s, b_s
 
