@@ -283,8 +283,8 @@ class _AxisAngleToRotmat(torch.autograd.Function):
     """`axis_angle_to_rotmat` with its closed-form backward on accelerators. With s = t^2,
     dR/dr_i = 2 r_i (a' K + b' K^2) + a [e_i]x + b ([e_i]x K + K [e_i]x), so
     dL/dr = 2 r (a' <G, K> + b' <G, K^2>) + vee(a G - b (G K + K G)), where vee(M) = (M21 - M12, M02 - M20, M10 - M01)
-    is <M, [e_i]x>: about twenty operators where autograd through the forward issues about eighty. The CPU keeps
-    autograd's."""
+    is <M, [e_i]x>: 41 operators backward where autograd through the forward issues 77 (50 forward against 39: the
+    derivatives of a and b). The CPU keeps autograd's."""
 
     @staticmethod
     def forward(ctx, aa: Tensor) -> Tensor:  # type: ignore[override]
