@@ -29,9 +29,10 @@ FlopCounterMode) at the best sgemm rate measured in the same run. Dataset images
 timing (a long run reads them from its in-memory cache after the first epoch); `--cold-data` times first reads
 instead.
 
-The host's cost of a GPU step, on any machine: `--accelerator-path` switches the compiled CPU kernels off, so the CPU
-runs the torch code a GPU runs, operator for operator; at a tiny size the arithmetic vanishes and what is left is
-the cost of issuing the step's operators, the work a GPU's host does per step whatever the device computes:
+The host's cost of a GPU step, on any machine: `--accelerator-path` switches the compiled CPU kernels off and reads
+the divergence checks after the step (`divergence.deferred=true`), so the CPU runs the torch code a GPU runs, operator
+for operator; at a tiny size the arithmetic vanishes and what is left is the cost of issuing the step's operators, the
+work a GPU's host does per step whatever the device computes:
 
     python tools/bench_train.py --accelerator-path --variants default -- profile.num_gaussians=300 profile.resolution=32
 """
