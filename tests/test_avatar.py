@@ -249,6 +249,15 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monk
     assert len(calls) == 1
     _, posed_grad, _ = avatar.pose(batch, sh_degree=1)  # gradients on: the torch path
     assert len(calls) == 1 and posed_grad.means.requires_grad
+    from framework.runtime import use_compiled_paths
+
+    previous = use_compiled_paths(False)  # a GPU's code on this CPU (tools' --accelerator-path): the torch skinning
+    try:
+        with torch.no_grad():
+            avatar.pose(_batch(body, pose=0.5 * pose), sh_degree=1)  # a new pose: not the posed cache
+    finally:
+        use_compiled_paths(previous)
+    assert len(calls) == 1
     avatar.rasterizer = RASTERIZERS.build("torch_ref")
     assert deformer.compiled_inference is False
     with torch.no_grad():

@@ -98,3 +98,24 @@ def test_subset_avatar_keeps_gaussians_and_corrected_rows(tool, avatar) -> None:
     rows = sub.corrector.active_rows.tolist()
     assert rows and all(index[r] in corrected for r in rows)
     assert len(rows) == sum(i in corrected for i in index)
+
+
+def test_operator_counts_of_the_gpu_path_show_one_host_wait_in_the_pose_path(tool, avatar) -> None:
+    """`--accelerator-path`: one frame of a GPU's code on this CPU. The pose path may wait for the host once, in the
+    polar decomposition's single read (framework.rig.polar); the bone transforms, F_a and the view colour never."""
+    from framework.runtime import use_compiled_paths
+
+    body = avatar.body
+    centre = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
+    cams = orbit_cameras(centre, 3.0, 0.0, 4, 32, 32, fov_deg=40)
+    pose = 0.3 * torch.randn(1, body.num_input_joints, 3, generator=torch.Generator().manual_seed(2))
+    previous = use_compiled_paths(False)
+    try:
+        counts = tool.pose_frame_operators(avatar, tool.frame_batch(cams, pose, 0, 32, "cpu"), 3)
+    finally:
+        use_compiled_paths(previous)
+    assert list(counts) == list(tool.POSE_PARTS)
+    assert all(ops > 0 for ops, _ in counts.values())
+    waits = {part: w for part, (_, w) in counts.items()}
+    assert waits["LBS (polar, skinning)"] == 1, counts
+    assert waits["bone transforms"] == waits["corrector F_a"] == waits["view colour (SH at R^T d)"] == 0, counts

@@ -3,18 +3,19 @@ no (each module imported `cpu_float` by name, so the switch must act inside it),
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from framework.image import compiled_ssim
 from framework.image.ssim import ssim_map
-from framework.model import compiled_posenc, lbs_deformer
+from framework.model import compiled_posenc, corrector_mlp, lbs_deformer, narrow_linear
 from framework.runtime import use_compiled_paths
 from plugins.rasterizer import numba_cpu
 
 
 def test_switch_turns_every_compiled_path_away_and_restores_it() -> None:
     x = torch.rand(1, 3, 24, 24)
-    modules = (compiled_ssim, compiled_posenc, lbs_deformer, numba_cpu)
+    modules = (compiled_ssim, compiled_posenc, lbs_deformer, numba_cpu, corrector_mlp, narrow_linear)
     assert all(m.cpu_float(x) for m in modules)
     previous = use_compiled_paths(False)
     try:
@@ -27,3 +28,21 @@ def test_switch_turns_every_compiled_path_away_and_restores_it() -> None:
     finally:
         assert use_compiled_paths(previous) is False
     assert all(m.cpu_float(x) for m in modules)
+
+
+def test_fused_corrector_layers_follow_the_switch_and_stay_out_of_torch_compile() -> None:
+    """F_a's oneDNN fused layers (CPU inference) are a compiled CPU path too: switched off, the plain layers run, as on
+    a GPU; and under `torch.compile` (`compile.pose`) the plain layers run, since inductor cannot trace the fused op."""
+    if not corrector_mlp._FUSED_LINEAR_AVAILABLE:
+        pytest.skip("this torch build has no oneDNN fused linear: the plain layers always run")
+    x = torch.rand(8, 4)
+    with torch.no_grad():
+        assert corrector_mlp._fuses_layers(x)
+        previous = use_compiled_paths(False)
+        try:
+            assert not corrector_mlp._fuses_layers(x)
+        finally:
+            use_compiled_paths(previous)
+        compiled = torch.compile(lambda t: t + 1 if corrector_mlp._fuses_layers(t) else t - 1, backend="eager")
+        torch.testing.assert_close(compiled(x), x - 1)
+    assert not corrector_mlp._fuses_layers(x)  # gradients on: the plain layers (the fused op has no backward)

@@ -15,6 +15,10 @@ and a last line bounds the novel-pose / novel-view ratio from below on this mach
 forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
 (`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
 
+The parts table also counts, in one frame, the operators each part issues and the host waits among them
+(`framework.host_waits`): what a GPU's host pays per frame whatever the device computes. `--accelerator-path` runs a
+GPU's torch code on a CPU (the compiled CPU paths off), so those counts are a GPU's on any machine.
+
 `--scaling` times the same parts on random subsets of the avatar's Gaussians (all, 1/2, 1/4, 1/50; a partially folded
 corrector keeps its rows among them) and fits each part as fixed + per-Gaussian cost (least squares). The fixed part
 is what a frame costs however small the model: it bounds how much faster a pruned model can render (a model with
@@ -35,11 +39,12 @@ import torch
 
 from framework.cameras import orbit_cameras
 from framework.evaluation.gemm_rate import gemm_rate
+from framework.host_waits import OperatorCount
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
-from framework.runtime import default_device
+from framework.runtime import default_device, use_compiled_paths
 from framework.splat.sh import sh_degree_of_bases
 from framework.types import Cameras, FrameBatch, RenderOutput
 
@@ -126,6 +131,21 @@ def pose_frame_parts(
     return {k: statistics.median(v) for k, v in times.items()}
 
 
+def pose_frame_operators(avatar: Avatar, batch: FrameBatch, sh_degree: int) -> dict[str, tuple[int, int]]:
+    """Operators issued and host waits (`framework.host_waits`) of each part of one novel-pose frame: on a GPU each
+    operator costs the host a launch or at least a dispatch, and each wait drains the device's queue."""
+    counter = OperatorCount()
+    marks: list[tuple[int, int]] = []
+
+    def mark() -> None:
+        marks.append((counter.operators, counter.waits))
+
+    with torch.no_grad(), counter:
+        mark()
+        pose_frame(avatar, batch, sh_degree, mark)
+    return {k: (b[0] - a[0], b[1] - a[1]) for k, a, b in zip(POSE_PARTS, marks[:-1], marks[1:], strict=True)}
+
+
 def corrector_gflop(avatar: Avatar, pose_features: torch.Tensor) -> float:
     """GFLOP of one F_a forward over the avatar's Gaussians (0 without an MLP corrector). Counted with gradients
     on, so that F_a takes its plain layers: the counter does not see oneDNN's fused ones (`corrector_mlp`)."""
@@ -149,13 +169,23 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--json", default=None)
     ap.add_argument("--scaling", action="store_true", help="fit each part as fixed + per-Gaussian cost")
+    ap.add_argument("--compile-pose", action="store_true",
+                    help="run F_a and the deformer under torch.compile (Avatar.compile_pose_path; `compile.pose` in "
+                         "training): whether fused kernels pay for a frame")  # fmt: skip
+    ap.add_argument("--accelerator-path", action="store_true",
+                    help="run a GPU's torch code on this CPU (compiled CPU paths off): its operators and host waits, "
+                         "and at a small size the host's cost of a frame")  # fmt: skip
     args = ap.parse_args()
+    if args.accelerator_path:
+        use_compiled_paths(False)
     load_plugins()
     if args.ckpt:
         avatar, degree = trained_avatar(args.ckpt, args.device)
     else:
         avatar, degree = synthetic_avatar(args.body, args.num, args.device), SYNTHETIC_SH_DEGREE
     avatar.eval()
+    if args.compile_pose:
+        avatar.compile_pose_path()  # compiles on the first frames: the warm-up (--warmup) absorbs it
     body = avatar.body
     J = body.num_input_joints
     center = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
@@ -212,12 +242,15 @@ def pose_path_report(
     res, dev = args.resolution, args.device
     batches = [frame_batch(cams, poses[i % len(poses)][None], i, res, dev) for i in range(args.warmup + args.repeats)]
     parts = pose_frame_parts(avatar, batches, sh_degree, args.warmup, dev)
+    counts = pose_frame_operators(avatar, batches[-1], sh_degree)
     pose_only = sum(v for k, v in parts.items() if k != "rasterizer")
+    pose_ops = [sum(c[i] for k, c in counts.items() if k != "rasterizer") for i in (0, 1)]
     view = view_ms[name]
-    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms):\n")
-    table = [(k, f"{v:.1f}", f"{v / view:.2f}x") for k, v in parts.items()]
-    table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x"))
-    print(format_table(table, ("part", "ms", "of the novel-view frame")))
+    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued and "
+          f"host waits of one frame, framework.host_waits):\n")  # fmt: skip
+    table = [(k, f"{v:.1f}", f"{v / view:.2f}x", *counts[k]) for k, v in parts.items()]
+    table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
+    print(format_table(table, ("part", "ms", "of the novel-view frame", "operators", "host waits")))
     with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
@@ -230,7 +263,8 @@ def pose_path_report(
         f"novel-pose / novel-view >= {bound:.2f}x (the parts measure {(view + pose_only) / view:.2f}x)."
     )
     return {
-        "backend": name, "parts_ms": parts, "novel_view_ms": view, "corrector_gflop": gflop,
+        "backend": name, "parts_ms": parts, "parts_operators_waits": counts, "novel_view_ms": view,
+        "corrector_gflop": gflop,
         "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
     }  # fmt: skip
 

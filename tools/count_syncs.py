@@ -36,21 +36,9 @@ import framework.train as train_entry  # first: it sets the OpenMP thread policy
 import torch  # noqa: E402  (after framework.train on purpose)
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
+from framework.host_waits import wait_kind  # noqa: E402
+
 aten = torch.ops.aten
-#: operators whose result the host needs (a value, or an output size that depends on the data)
-SYNC_OPS = {
-    aten._local_scalar_dense.default: "item / float / bool",
-    aten.nonzero.default: "nonzero",
-    aten.masked_select.default: "masked_select",
-    aten.equal.default: "equal",
-    aten.is_nonzero.default: "is_nonzero",
-    aten._unique2.default: "unique",
-    aten.unique_dim.default: "unique",
-    aten.repeat_interleave.Tensor: "repeat_interleave",
-    # a tensor made from Python values (`torch.tensor([...])`, `new_tensor`, `as_tensor` of a list): on a GPU it is
-    # built on the host and copied over, and a copy from ordinary (pageable) memory waits for the queue to drain
-    aten.lift_fresh.default: "tensor from Python values (host-to-device copy)",
-}
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
 DATA_FILES = ("framework/data/",)
 
@@ -98,21 +86,6 @@ def _operator_group(site: str) -> str:
     return "the rest of the step"
 
 
-def _crosses_from_host(func, args, kwargs) -> bool:
-    """Whether this operator copies a host tensor to another device without `non_blocking` (a `.to(device)` or
-    `copy_` from the CPU): on a GPU, a copy from pageable memory that waits for the queue. Seen only where a second
-    device exists (a GPU machine, or a test's meta device): on a CPU alone `.to("cpu")` is no operator at all."""
-    if func is aten._to_copy.default:
-        source, target = args[0], kwargs.get("device")
-    elif func is aten.copy_.default:
-        source, target = args[1], args[0].device
-    else:
-        return False
-    if target is None or kwargs.get("non_blocking") or (len(args) > 2 and args[2] is True):
-        return False
-    return source.device.type == "cpu" and torch.device(target).type != "cpu"
-
-
 class SyncCounter(TorchDispatchMode):
     """Counts host-sync operators by (kind, site) for the step in `self.step` (None: outside counted steps)."""
 
@@ -125,15 +98,7 @@ class SyncCounter(TorchDispatchMode):
         self.operator_sites: Counter[str] = Counter()  # by our innermost function (file and name, no line)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kind = SYNC_OPS.get(func)
-        if func is aten.index.Tensor and any(
-            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else []) or []
-        ):
-            kind = "boolean index"
-        if func is aten.repeat_interleave.Tensor and (kwargs or {}).get("output_size") is not None:
-            kind = None  # the output size is given: nothing to wait for
-        if _crosses_from_host(func, args, kwargs or {}):
-            kind = "host-to-device copy (.to)"
+        kind = wait_kind(func, args, kwargs or {})  # the rules: framework.host_waits
         if self.step is not None:
             site = _site()
             if func is aten.lift_fresh.default and site.startswith(DATA_FILES):

@@ -20,6 +20,7 @@ from framework.device_constants import constant_on
 from framework.geometry import quat_multiply
 from framework.interfaces.corrector import Corrector
 from framework.model.narrow_linear import NarrowLinear
+from framework.runtime import cpu_float
 from framework.types import Gaussians, num_sh_coeffs
 
 
@@ -33,7 +34,11 @@ def _fuses_layers(x: Tensor) -> bool:
     for a 128-wide layer with its ReLU (2-core AVX-512 VM, medians). The values agree with the plain layers' to
     float32 rounding."""
     return (
-        not torch.is_grad_enabled() and x.device.type == "cpu" and x.dtype == torch.float32 and _FUSED_LINEAR_AVAILABLE
+        not torch.is_grad_enabled()
+        and cpu_float(x)  # a CPU tensor, and the compiled CPU paths not switched off (a GPU's code on a CPU)
+        and x.dtype == torch.float32
+        and _FUSED_LINEAR_AVAILABLE
+        and not torch.compiler.is_compiling()  # inductor cannot trace the oneDNN op (`compile.pose`)
     )
 
 

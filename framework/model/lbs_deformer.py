@@ -142,8 +142,9 @@ class LBSDeformerBase(Deformer):
         return self.compiled_weights and cpu_float(points) and self.field.partition_of_unity
 
     def _skins_compiled(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
-        """Whether this call takes the compiled skinning: switched on, baked weights, CPU, no gradient asked."""
-        if not self.compiled_inference or gaussians.skin_weights is None or w.device.type != "cpu":
+        """Whether this call takes the compiled skinning: switched on (and the compiled CPU paths not switched off),
+        baked weights, CPU, no gradient asked."""
+        if not self.compiled_inference or gaussians.skin_weights is None or not cpu_float(w):
             return False
         tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))

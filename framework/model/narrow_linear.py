@@ -23,6 +23,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional
 
+from framework.runtime import cpu_float
+
 #: widths are padded up to a multiple of this (16 float32 lanes: one AVX-512 register)
 LANES = 16
 
@@ -70,8 +72,7 @@ def _takes(x: Tensor, weight: Tensor) -> bool:
         and torch.is_grad_enabled()
         and (x.requires_grad or weight.requires_grad)
         and x.dim() == 2
-        and x.device.type == "cpu"
-        and x.dtype in (torch.float32, torch.float64)
+        and cpu_float(x)  # CPU float32/64, and the CPU-only paths not switched off (a GPU's code on a CPU)
     )
 
 
