@@ -68,8 +68,8 @@ def _cofactors(X: Tensor) -> Tensor:
     """Cofactor matrices of X [9, M] (entry-major: every op is one contiguous vector operation), [9, M].
 
     One gather of the 36 factor rows and one fused multiply-subtract, instead of 27 products on single entries."""
-    Y = X.index_select(0, constant_on(_COFACTOR_INDEX, X.device)).view(4, 9, -1)  # [4, 9, M]
-    return torch.addcmul(Y[0] * Y[1], Y[2], Y[3], value=-1.0)
+    a, b, c, d = X.index_select(0, constant_on(_COFACTOR_INDEX, X.device)).view(4, 9, -1).unbind(0)  # 4 x [9, M]
+    return torch.addcmul(a * b, c, d, value=-1.0)
 
 
 def _rotation_svd(A: Tensor) -> Tensor:
@@ -117,13 +117,13 @@ def _rotation_newton_one_read(X: Tensor, C: Tensor, det: Tensor, norm_sq: Tensor
     [9, M], or None when that read is False (a matrix for the SVD, a non-finite entry, or slow convergence: the
     caller then takes the checked path from the start; the steps here were spent on nothing)."""
     tol = _NEWTON_TOL.get(X.dtype, 1e-6)
-    for it in range(_NEWTON_STEPS_ACCELERATOR):
+    for it in range(_NEWTON_STEPS_ACCELERATOR - 1):
         if it:
             C, det, norm_sq = _cofactors_det_norm(X)
-        X_new = _newton_step(X, C, det, norm_sq)
-        last_step = (X_new - X).abs().amax()  # [], NaN where a matrix was not fit for Newton
-        X = X_new
-    return X if bool((last_step.square() < tol) & good.all()) else None
+        X = _newton_step(X, C, det, norm_sq)
+    X_new = _newton_step(X, *_cofactors_det_norm(X))
+    last_step = (X_new - X).abs().amax()  # [], NaN where a matrix was not fit for Newton
+    return X_new if bool((last_step.square() < tol) & good.all()) else None
 
 
 def _finite_or_identity(X: Tensor) -> Tensor:
