@@ -17,12 +17,12 @@ def _normalize_with_norm(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> tup
     0.84 ms (component-major) at 8k quaternions, this 0.01-0.02 ms (2-core CPU); the clamp at eps^2 (below the
     threshold) keeps the root's slope finite at zero, where the gradient is then exactly zero."""
     norm = q.square().sum(dim, keepdim=True).clamp_min(eps * eps).sqrt()
-    identity = constant_on(_IDENTITY_WXYZ, q.device, q.dtype)  # [4], broadcast (no zeros_like, select and fill)
+    identity = constant_on(IDENTITY_QUAT, q.device, q.dtype)  # [4], broadcast (no zeros_like, select and fill)
     identity = identity if dim in (-1, q.dim() - 1) else identity.view(4, *([1] * (q.dim() - 1 - (dim % q.dim()))))
     return torch.where(norm > eps, q / norm.clamp_min(eps), identity), norm
 
 
-_IDENTITY_WXYZ = torch.tensor([1.0, 0.0, 0.0, 0.0])
+IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])  # wxyz; read-only, moved to a device by `constant_on`
 
 
 def quat_normalize(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> Tensor:

@@ -16,7 +16,6 @@ def main() -> int:
 
     @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="view")
     def _main(cfg: DictConfig) -> None:
-
         from framework.animation.camera_paths import subject_view
         from framework.lightning.trained_model import datamodule_for, load_module
         from framework.runtime import default_device

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from framework.device_constants import constant_on
-from framework.geometry import quat_multiply
+from framework.geometry import IDENTITY_QUAT, quat_multiply
 from framework.interfaces.corrector import Corrector
 from framework.model.narrow_linear import NarrowLinear
 from framework.runtime import cpu_float
@@ -50,7 +50,6 @@ def _has_fused_linear() -> bool:
 
 
 _FUSED_LINEAR_AVAILABLE = _has_fused_linear()
-_IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])  # wxyz: the rotation residual is added to it
 
 
 class MLPCorrector(Corrector):
@@ -159,7 +158,7 @@ class MLPCorrector(Corrector):
             return gaussians
         d = self.residuals(gaussians, pose).to(gaussians.means.dtype)
         n = gaussians.num
-        d_rot = d[:, 4:8] + constant_on(_IDENTITY_QUAT, d.device, d.dtype)
+        d_rot = d[:, 4:8] + constant_on(IDENTITY_QUAT, d.device, d.dtype)  # the rotation residual is added to it
         d_sh = d[:, 8:].reshape(n, self.num_sh_out, 3)
         sh = gaussians.sh
         k = min(sh.shape[1], self.num_sh_out)
