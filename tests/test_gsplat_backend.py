@@ -99,8 +99,10 @@ def _project_as_gsplat(means, quats, scales, opacities, viewmats, Ks, width, hei
     zero = torch.zeros_like(z)
     J = torch.stack([fx / z, zero, -fx * tx / z**2, zero, fy / z, -fy * ty / z**2], -1).reshape(*z.shape, 2, 3)
     M = _rotmat_as_gsplat(quats) * scales[:, None, :]  # [N, 3, 3]
-    T = J @ R[:, None] @ M[None]  # [C, N, 2, 3]
-    cov = T @ T.transpose(-1, -2) + eps2d * torch.eye(2)  # [C, N, 2, 2], add_blur
+    # in the kernel's order (its float32 rounding is what tests/test_conic_precision.py measures): the world
+    # covariance (quat_scale_to_covar_preci), to the camera (covar_world_to_cam), J . J^T (persp_proj), add_blur
+    covar_c = R[:, None] @ (M @ M.transpose(-1, -2))[None] @ R[:, None].transpose(-1, -2)  # [C, N, 3, 3]
+    cov = J @ covar_c @ J.transpose(-1, -2) + eps2d * torch.eye(2)  # [C, N, 2, 2]
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
     det = a * c - b * b
     conics = torch.stack([c / det, -b / det, a / det], -1)  # [C, N, 3]

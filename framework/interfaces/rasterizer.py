@@ -53,6 +53,13 @@ class Rasterizer(ABC):
     #: float32-sized finite-difference steps and tolerances instead of float64 ones.
     supports_float64: bool = True
 
+    #: True for a backend that forms each conic by inverting its float32 screen covariance, 1 / (a c - b^2), as
+    #: gsplat's projection kernel does. For a covariance of condition number kappa that determinant cancels down to
+    #: about kappa * eps32 relative accuracy, so a needle-thin Gaussian's opacity falloff is that far off in any such
+    #: implementation. The conformance suite then widens its extreme-scene tolerances by that term
+    #: (`framework.testing.conformance.extreme_tolerances`); everywhere else its checks are the same.
+    conic_from_float32_covariance: bool = False
+
     @abstractmethod
     def render(
         self,
