@@ -27,7 +27,9 @@ IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])  # wxyz; read-only, moved to 
 
 def quat_normalize(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> Tensor:
     """Normalise quaternions along `dim` ([..., 4]; dim=0 for [4, N]); a zero one maps to the identity, not NaN."""
-    if q.requires_grad and few_kernels(q):
+    # Compiled code (`compile.pose`) fuses autograd's backward anyway, and dynamo fails to lift `eps` into this
+    # Function's subgraph when it traces it within a larger graph (torch 2.13: "lift_tracked_freevar_to_input").
+    if q.requires_grad and few_kernels(q) and not torch.compiler.is_compiling():
         return _QuatNormalize.apply(q, eps, dim)
     return _normalize_with_norm(q, eps, dim)[0]
 

@@ -206,3 +206,59 @@ def test_cuda_polar_reads_the_host_once_and_matches_svd(code_path):
     reads = _count_host_reads(lambda: out.append(polar_rotation_values(A.cuda())))
     assert reads == 1
     assert (out[0].double().cpu() - svd_rotation(A.double())).abs().max() < 2e-6
+
+
+# ---------------------------------------------------------------- the form torch.compile traces (compile.pose)
+
+
+def _traced(A: torch.Tensor) -> torch.Tensor:
+    from framework.rig.polar import _polar_values_traced
+
+    return _polar_values_traced(A.reshape(-1, 9).t().contiguous()).t().reshape(A.shape)
+
+
+def test_traced_form_matches_svd_with_no_host_read():
+    """No read and no branch on values: fixed Newton steps where Newton applies, Horn's maximiser elsewhere (here:
+    the random matrices with det < 0, about half of them)."""
+    A = torch.randn(1000, 3, 3, dtype=D64)
+    assert (torch.linalg.det(A) < 0).sum() > 300
+    out = []
+    assert _count_host_reads(lambda: out.append(_traced(A))) == 0
+    assert (out[0] - svd_rotation(A)).abs().max() < 1e-12
+    blends = lbs_blends(2000, joints=6, max_angle=2.5).float()
+    assert (_traced(blends).double() - svd_rotation(blends.double())).abs().max() < 2e-6
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_traced_form_at_the_extremes(dtype):
+    """Proper rotations everywhere; the SVD's rotation wherever the closest rotation is unique (the near-antipodal
+    blend among them, 2e-4 from rank 1), and a maximiser of tr(R^T A) where it is not (the rank-1 blend: the one
+    direction A determines is mapped right; -I: a half turn)."""
+    A = _extremes(dtype)
+    R, ref = _traced(A).double(), svd_rotation(A.double())
+    assert torch.allclose(R.mT @ R, EYE.expand_as(R), atol=1e-6)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(len(A), dtype=D64), atol=1e-6)
+    unique = [0, 1, 3, 4, 5, 6, 7, 8]
+    assert (R[unique] - ref[unique]).abs().max() < (1e-10 if dtype == D64 else 2e-6)
+    a = torch.tensor([0.0, 1.0, 0.0], dtype=D64)
+    assert torch.allclose(R[2] @ a, ref[2] @ a, atol=1e-6)  # rank 1: A = R (2 a a^T) / 2
+    assert abs(float(torch.trace(R[9])) + 1.0) < 1e-6  # -I: tr(R^T A) = -tr(R) is largest (1) for half turns
+    bad = A.clone()
+    bad[1, 0, 0], bad[6, 2, 1] = float("nan"), float("inf")
+    assert torch.equal(_traced(bad)[[1, 6]], torch.eye(3, dtype=dtype).expand(2, 3, 3))
+
+
+def test_traced_form_compiles_as_one_graph_with_the_same_gradient():
+    """`torch.compile(fullgraph=True)` fails on any graph break: the polar decomposition, forward and backward, traces
+    whole, and its gradient is the closed form the eager path uses."""
+    from framework.rig.polar import polar_rotation_entry_major
+
+    X = lbs_blends(200, max_angle=1.0).float().reshape(-1, 9).t().contiguous().requires_grad_()
+    G = torch.randn(9, 200)
+    compiled = torch.compile(polar_rotation_entry_major, fullgraph=True, backend="aot_eager")
+    R = compiled(X)
+    (grad,) = torch.autograd.grad((R * G).sum(), X)
+    R_eager = polar_rotation_entry_major(X)
+    (grad_eager,) = torch.autograd.grad((R_eager * G).sum(), X)
+    assert (R - R_eager).abs().max() < 2e-6
+    assert (grad - grad_eager).abs().max() < 1e-5 * grad_eager.abs().max()

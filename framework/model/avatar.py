@@ -144,10 +144,12 @@ class Avatar(nn.Module):
         are, and hooks (a benchmark's timers) run outside the compiled code.
 
         Why: a GPU training step issues ~1700 small operators (tools/count_syncs.py), each a kernel launch; compiled,
-        the pose path's element-wise chains can run as a few fused kernels forward and backward. Its data-dependent
-        parts (the polar decomposition's convergence checks and SVD fallback, the compiled CPU loops) stay eager
-        between the compiled pieces. Dynamic shapes, because densification changes N. Off by default: on a CPU it
-        gained nothing (docs/results/speed.md, eighteenth pass), and no GPU has timed it yet."""
+        the pose path's element-wise chains can run as a few fused kernels forward and backward. The polar
+        decomposition traces a form without host reads (`framework.rig.polar`), so on a GPU (and on a CPU's
+        accelerator path) the deformer compiles as one graph; a CPU's own compiled loops (numba) stay outside the
+        graph. Dynamic shapes, because densification
+        changes N. Off by default: on a CPU it gained nothing (docs/results/speed.md, eighteenth and twentieth
+        passes), and no GPU has timed it yet."""
         for module in (self.corrector, self.deformer):
             if module is not None:
                 module.forward = torch.compile(module.forward, dynamic=True)
