@@ -204,19 +204,27 @@ def _rotation_horn(X: Tensor) -> Tensor:
     return (Q * (q.unsqueeze(1) * q.unsqueeze(0)).view(1, 16, M)).sum(1)  # [9, M]: R_e = q^T Q_e q
 
 
+def _compute_dtype(X: Tensor, dtype: torch.dtype | None) -> torch.dtype:
+    """The iteration's dtype: `dtype`, else X's and at least float32; float32 or float64 only."""
+    compute = dtype or torch.promote_types(X.dtype, torch.float32)
+    if compute not in (torch.float32, torch.float64):
+        raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
+    return compute
+
+
 def _polar_values_traced(X: Tensor, dtype: torch.dtype | None = None) -> Tensor:
     """`_polar_values_entry_major` as `torch.compile` traces it: X [9, M] -> R [9, M] with no host read and no branch
     on values, so a compiled deformer stays one graph. A matrix with a NaN or inf entry becomes the identity; matrices
     fit for Newton (the same test as the eager forms) take `_NEWTON_STEPS_TRACED` steps, the others (det <= 0 or
     nearly singular) Horn's maximiser in float64, as the eager forms take the float64 SVD there; both are computed for
     every matrix and one is chosen per matrix."""
-    compute = dtype or torch.promote_types(X.dtype, torch.float32)
+    compute = _compute_dtype(X, dtype)
     eye = constant_on(_EYE3, X.device, compute)
     Xc = X.to(compute)
     Xc = torch.where(torch.isfinite(Xc).all(0), Xc, eye)  # [9, M]
     good = _newton_inputs(Xc)[3]  # [M]
     R = torch.where(good, Xc, eye)  # the others iterate the identity, which stays finite
-    for _ in range(_NEWTON_STEPS_TRACED.get(compute, 6)):
+    for _ in range(_NEWTON_STEPS_TRACED[compute]):
         R = _newton_step(R, *_cofactors_det_norm(R))
     return torch.where(good, R, _rotation_horn(Xc.double()).to(compute)).to(X.dtype)
 
@@ -232,16 +240,14 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
 
 
-@torch.compiler.disable  # data-dependent (convergence checks, SVD fallback): eager inside a compiled pose path
+@torch.compiler.disable  # data-dependent (convergence checks, SVD fallback); compiled code takes `_polar_values_traced`
 @torch.no_grad()
 def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
     """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
     if method not in ("svd", "newton"):
         raise ValueError(f"polar: method must be 'svd' or 'newton', got '{method}'.")
     out_dtype, M = X.dtype, X.shape[1]
-    compute = dtype or torch.promote_types(X.dtype, torch.float32)
-    if compute not in (torch.float32, torch.float64):
-        raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
+    compute = _compute_dtype(X, dtype)
     Xc = X.to(torch.float64 if method == "svd" else compute).contiguous()  # [9, M]
     if M == 0:
         return torch.empty_like(X)
