@@ -38,8 +38,8 @@ EPS32 = torch.finfo(torch.float32).eps
 
 
 class GsplatConic(TorchRefRasterizer):
-    """torch_ref with gsplat 1.5.3's conics: `conic_error` (a relative error, per camera and Gaussian [C, N]) can be
-    added on top, to check that the tolerance still catches what the cancellation does not explain."""
+    """torch_ref with gsplat 1.5.3's conics. `conic_error`, a relative error put on every conic, checks that the
+    tolerance still catches what the cancellation does not explain."""
 
     conic_from_float32_covariance = True
 
