@@ -84,7 +84,7 @@ def test_corrector_extremes(case) -> None:
     # posenc beyond 10 extents: float32 sin/cos arguments 2^k pi x carry ~eps * 2^k pi |x| (~4e-3 at 1e3 extents)
     rtol = 1e-4 if kind == "latent" or mag <= 10.0 else 5e-2
     for f in fields:
-        got, want = getattr(out, f).detach().double(), getattr(ref, f)
+        got, want = getattr(out, f).detach().double(), getattr(ref, f).detach()
         scale = float(want.abs().max()) + 1.0
         assert float((got - want).abs().max()) <= rtol * scale, f"{kind}/{pose_kind}/{f}"
 
@@ -150,12 +150,12 @@ def test_loss_extremes(case) -> None:
         got = LOSSES.build(name)(render, batch, aux)
         values[name] = got
         tol = 1e-5 if name == "dssim" else 1e-5 * abs(want) + 1e-6
-        assert abs(float(got) - want) <= tol, f"{kind}: {name} {float(got)} vs {want}"
+        assert abs(float(got.detach()) - want) <= tol, f"{kind}: {name} {float(got.detach())} vs {want}"
     composite = CompositeLoss({"l1": {"weight": 0.8}, "alpha": {"weight": 10.0}, "weight_std": {"weight": 0.2},
                                "dssim": {"weight": 0.2}})  # fmt: skip
     total, terms = composite(render, batch, aux)
     want_total = 0.8 * expected["l1"] + 10 * expected["alpha"] + 0.2 * expected["weight_std"] + 0.2 * expected["dssim"]
-    assert abs(float(total) - want_total) <= 1e-5 * abs(want_total) + 1e-5, kind
+    assert abs(float(total.detach()) - want_total) <= 1e-5 * abs(want_total) + 1e-5, kind
     total.backward()
     assert all_finite(total, rgb.grad, alpha.grad, weights6.grad), kind
 
@@ -168,8 +168,8 @@ def test_weight_std_guard_is_what_happens() -> None:
     w6 = w6.requires_grad_()
     std = weight_std(w6)
     std.sum().backward()
-    assert float(std[0]) == 0.0 and float(w6.grad[0].abs().max()) == 0.0
-    assert float(std[1]) == pytest.approx(0.1, rel=1e-12) and float(std[2]) == 0.0
+    assert float(std[0].detach()) == 0.0 and float(w6.grad[0].abs().max()) == 0.0
+    assert float(std[1].detach()) == pytest.approx(0.1, rel=1e-12) and float(std[2].detach()) == 0.0
     assert all_finite(w6.grad)
 
 
