@@ -93,6 +93,15 @@ def _rotation_tables() -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
 (_ROTMAT_INDEX, _ROTMAT_COEF), (_HAMILTON_INDEX, _HAMILTON_COEF) = _rotation_tables()  # [36], [36]; [16], [16]
 
 
+def rotation_quadratic_forms() -> Tensor:
+    """Q [9, 4, 4] float64, each symmetric, with R(q)_e = q^T Q_e q for a unit quaternion q (wxyz), e = 3i + j: the
+    rotation table of `quat_to_rotmat`'s few-kernel form as matrices (Horn's method in `framework.rig.polar` needs
+    sum_e A_e Q_e)."""
+    rows = torch.arange(len(_ROTMAT_INDEX)) // 4 * 16  # [36]: each entry's four terms
+    Q = torch.zeros(9 * 16, dtype=torch.float64).index_add_(0, rows + _ROTMAT_INDEX, _ROTMAT_COEF).view(9, 4, 4)
+    return 0.5 * (Q + Q.transpose(1, 2))
+
+
 def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Tensor:
     """The four-term bilinear forms of `_product_table` of 4-vectors a, b along `dim` (0 or -1), stacked along `dim`.
 

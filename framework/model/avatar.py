@@ -147,9 +147,8 @@ class Avatar(nn.Module):
         the pose path's element-wise chains can run as a few fused kernels forward and backward. The polar
         decomposition traces a form without host reads (`framework.rig.polar`), so on a GPU (and on a CPU's
         accelerator path) the deformer compiles as one graph; a CPU's own compiled loops (numba) stay outside the
-        graph. Dynamic shapes, because densification
-        changes N. Off by default: on a CPU it gained nothing (docs/results/speed.md, eighteenth and twentieth
-        passes), and no GPU has timed it yet."""
+        graph. Dynamic shapes, because densification changes N. Off by default: on a CPU it gained nothing
+        (docs/results/speed.md, eighteenth and twentieth passes), and no GPU has timed it yet."""
         for module in (self.corrector, self.deformer):
             if module is not None:
                 module.forward = torch.compile(module.forward, dynamic=True)

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
-from framework.geometry import products_3x3
+from framework.geometry import products_3x3, rotation_quadratic_forms
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
 from framework.runtime import cpu_float
 
@@ -158,22 +158,7 @@ def _newton_inputs(X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return C, det, norm_sq, det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()
 
 
-def _rotation_quadric() -> Tensor:
-    """Q [9, 4, 4] with R(q)_e = q^T Q_e q for a unit quaternion q = (w, x, y, z), e = 3i + j: the rotation matrix's
-    entries as quadratic forms (R_00 = w^2 + x^2 - y^2 - z^2, R_01 = 2 (x y - w z), ...)."""
-    Q = torch.zeros(9, 4, 4, dtype=torch.float64)
-    w, x, y, z = range(4)
-    for e, signs in ((0, (1, 1, -1, -1)), (4, (1, -1, 1, -1)), (8, (1, -1, -1, 1))):
-        Q[e] = torch.diag(torch.tensor(signs, dtype=torch.float64))
-    off_diagonal = [(1, (x, y), (w, z), -1), (3, (x, y), (w, z), 1), (2, (x, z), (w, y), 1),
-                    (6, (x, z), (w, y), -1), (5, (y, z), (w, x), -1), (7, (y, z), (w, x), 1)]  # fmt: skip
-    for e, (a, b), (c, d), sign in off_diagonal:  # R_e = 2 (q_a q_b + sign q_c q_d)
-        Q[e, a, b] = Q[e, b, a] = 1.0
-        Q[e, c, d] = Q[e, d, c] = float(sign)
-    return Q
-
-
-_QUADRIC = _rotation_quadric().view(9, 16, 1)  # [9, 16, 1]
+_QUADRIC = rotation_quadratic_forms().view(9, 16, 1)  # [9, 16, 1]: R(q)_e = q^T Q_e q
 _SQRT3 = 3.0**0.5
 _EYE4 = torch.eye(4, dtype=torch.float64).unsqueeze(-1)  # [4, 4, 1]
 _EYE3 = torch.eye(3, dtype=torch.float64).reshape(9, 1)  # [9, 1]
