@@ -1,10 +1,17 @@
-"""Which operators make a GPU's host wait, and a dispatch mode that counts them with every operator issued.
+"""Which operators make a GPU's host wait or queue work on it, and a dispatch mode that counts them.
 
 Why: a GPU step or frame costs the host time to issue each operator (a kernel launch or at least a dispatch), and
 every operator whose result the host needs (`.item()`, a boolean index, `nonzero`, a tensor made from Python values,
 a copy from host memory without `non_blocking`) waits until the device has run everything queued. Both can be
 counted on any machine by running the GPU's code path on a CPU (`framework.runtime.use_compiled_paths(False)`):
 `tools/count_syncs.py` counts a training step, `tools/bench_render.py` a novel-pose frame, with the rules here.
+
+Not every operator queues device work: about a third of a training step's are views (`view`, `select`,
+`unsqueeze`, `expand`, `t`, `detach`, ...), which only make a new tensor header on the host, and a few are bare
+allocations (the caching allocator hands out memory without a kernel). `queues_device_work` tells them apart, so the
+tools report both the operators (the host's dispatches) and those that queue a kernel or a copy (the launches). A
+composite operator may still launch more than one kernel (a sort, a multi-tensor `_foreach_` over many chunks): the
+launch count is a lower bound.
 """
 
 from __future__ import annotations
@@ -27,6 +34,18 @@ SYNC_OPS = {
     # a tensor made from Python values (`torch.tensor([...])`, `new_tensor`, `as_tensor` of a list): on a GPU it is
     # built on the host and copied over, and a copy from ordinary (pageable) memory waits for the queue to drain
     aten.lift_fresh.default: "tensor from Python values (host-to-device copy)",
+}
+
+
+#: operators that queue nothing on the device besides views: allocations the caching allocator serves from its pool,
+#: and `_unsafe_view` (a reshape's result taking over its input's storage, no copy)
+NO_DEVICE_WORK = {
+    aten.empty.memory_format,
+    aten.empty_strided.default,
+    aten.empty_like.default,
+    aten.new_empty.default,
+    aten.new_empty_strided.default,
+    aten._unsafe_view.default,
 }
 
 
@@ -59,16 +78,27 @@ def wait_kind(func, args, kwargs) -> str | None:
     return kind
 
 
+def queues_device_work(func, wait: str | None) -> bool:
+    """Whether this aten call queues work on a GPU (a kernel or a copy), given its `wait_kind`: not a view (a new
+    header on the host, `func.is_view`) nor a bare allocation. A host wait always does: it copies a value across
+    (`lift_fresh`, a view in the schema, marks a tensor made from Python values, copied to the device)."""
+    return wait is not None or not (func.is_view or func in NO_DEVICE_WORK)
+
+
 class OperatorCount(TorchDispatchMode):
-    """Counts every aten operator (`operators`) and the host waits among them (`waits`) while active."""
+    """Counts every aten operator (`operators`), those that queue device work (`launches`) and the host waits among
+    them (`waits`) while active."""
 
     def __init__(self) -> None:
         super().__init__()
         self.operators = 0
+        self.launches = 0
         self.waits = 0
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
+        wait = wait_kind(func, args, kwargs)
         self.operators += 1
-        self.waits += wait_kind(func, args, kwargs) is not None
+        self.launches += queues_device_work(func, wait)
+        self.waits += wait is not None
         return func(*args, **kwargs)

@@ -15,8 +15,9 @@ and a last line bounds the novel-pose / novel-view ratio from below on this mach
 forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
 (`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
 
-The parts table also counts, in one frame, the operators each part issues and the host waits among them
-(`framework.host_waits`): what a GPU's host pays per frame whatever the device computes. `--accelerator-path` runs a
+The parts table also counts, in one frame, the operators each part issues, those of them that queue device work (a
+kernel or a copy; the others are views and bare allocations) and the host waits among them (`framework.host_waits`):
+what a GPU's host pays per frame whatever the device computes. `--accelerator-path` runs a
 GPU's torch code on a CPU (the compiled CPU paths off), so those counts are a GPU's on any machine.
 
 `--scaling` times the same parts on random subsets of the avatar's Gaussians (all, 1/2, 1/4, 1/50; a partially folded
@@ -131,19 +132,23 @@ def pose_frame_parts(
     return {k: statistics.median(v) for k, v in times.items()}
 
 
-def pose_frame_operators(avatar: Avatar, batch: FrameBatch, sh_degree: int) -> dict[str, tuple[int, int]]:
-    """Operators issued and host waits (`framework.host_waits`) of each part of one novel-pose frame: on a GPU each
-    operator costs the host a launch or at least a dispatch, and each wait drains the device's queue."""
+def pose_frame_operators(avatar: Avatar, batch: FrameBatch, sh_degree: int) -> dict[str, tuple[int, int, int]]:
+    """(operators issued, those queuing device work, host waits) of each part of one novel-pose frame
+    (`framework.host_waits`): on a GPU each operator costs the host a dispatch, each of the second kind a kernel
+    launch or a copy too, and each wait drains the device's queue."""
     counter = OperatorCount()
-    marks: list[tuple[int, int]] = []
+    marks: list[tuple[int, int, int]] = []
 
     def mark() -> None:
-        marks.append((counter.operators, counter.waits))
+        marks.append((counter.operators, counter.launches, counter.waits))
 
     with torch.no_grad(), counter:
         mark()
         pose_frame(avatar, batch, sh_degree, mark)
-    return {k: (b[0] - a[0], b[1] - a[1]) for k, a, b in zip(POSE_PARTS, marks[:-1], marks[1:], strict=True)}
+    return {
+        k: tuple(after - before for before, after in zip(a, b, strict=True))
+        for k, a, b in zip(POSE_PARTS, marks[:-1], marks[1:], strict=True)
+    }
 
 
 def corrector_gflop(avatar: Avatar, pose_features: torch.Tensor) -> float:
@@ -244,13 +249,14 @@ def pose_path_report(
     parts = pose_frame_parts(avatar, batches, sh_degree, args.warmup, dev)
     counts = pose_frame_operators(avatar, batches[-1], sh_degree)
     pose_only = sum(v for k, v in parts.items() if k != "rasterizer")
-    pose_ops = [sum(c[i] for k, c in counts.items() if k != "rasterizer") for i in (0, 1)]
+    pose_ops = [sum(c[i] for k, c in counts.items() if k != "rasterizer") for i in (0, 1, 2)]
     view = view_ms[name]
-    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued and "
-          f"host waits of one frame, framework.host_waits):\n")  # fmt: skip
+    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued, those "
+          f"queuing device work and host waits of one frame, framework.host_waits):\n")  # fmt: skip
     table = [(k, f"{v:.1f}", f"{v / view:.2f}x", *counts[k]) for k, v in parts.items()]
     table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
-    print(format_table(table, ("part", "ms", "of the novel-view frame", "operators", "host waits")))
+    header = ("part", "ms", "of the novel-view frame", "operators", "queue device work", "host waits")
+    print(format_table(table, header))
     with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
@@ -263,7 +269,7 @@ def pose_path_report(
         f"novel-pose / novel-view >= {bound:.2f}x (the parts measure {(view + pose_only) / view:.2f}x)."
     )
     return {
-        "backend": name, "parts_ms": parts, "parts_operators_waits": counts, "novel_view_ms": view,
+        "backend": name, "parts_ms": parts, "parts_operators_launches_waits": counts, "novel_view_ms": view,
         "corrector_gflop": gflop,
         "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
     }  # fmt: skip

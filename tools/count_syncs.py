@@ -36,7 +36,7 @@ import framework.train as train_entry  # first: it sets the OpenMP thread policy
 import torch  # noqa: E402  (after framework.train on purpose)
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
-from framework.host_waits import wait_kind  # noqa: E402
+from framework.host_waits import queues_device_work, wait_kind  # noqa: E402
 
 aten = torch.ops.aten
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
@@ -93,9 +93,12 @@ class SyncCounter(TorchDispatchMode):
         super().__init__()
         self.step: int | None = None
         self.counts: Counter[tuple[str, str]] = Counter()
-        # every aten operator of the counted steps (on a GPU, each one launch or more), by where it came from
+        # every aten operator of the counted steps (on a GPU, each a dispatch on the host), by where it came from,
+        # and those of them that queue device work (a kernel launch or a copy; not views, not bare allocations)
         self.operators: Counter[str] = Counter()
+        self.launches: Counter[str] = Counter()
         self.operator_sites: Counter[str] = Counter()  # by our innermost function (file and name, no line)
+        self.launch_sites: Counter[str] = Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kind = wait_kind(func, args, kwargs or {})  # the rules: framework.host_waits
@@ -103,8 +106,12 @@ class SyncCounter(TorchDispatchMode):
             site = _site()
             if func is aten.lift_fresh.default and site.startswith(DATA_FILES):
                 kind = None  # the data loader builds its items in host memory; they travel with the batch
-            self.operators[_operator_group(site)] += 1
-            self.operator_sites[_function(site)] += 1
+            group, function = _operator_group(site), _function(site)
+            self.operators[group] += 1
+            self.operator_sites[function] += 1
+            if queues_device_work(func, kind) and not site.startswith(DATA_FILES):  # data: host memory
+                self.launches[group] += 1
+                self.launch_sites[function] += 1
             if kind is not None:
                 self.counts[(kind, site)] += 1
         return func(*args, **(kwargs or {}))
@@ -169,12 +176,21 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {count / n:.2f} | {kind} | `{site}`{note} |")
     outside = sum(c for (_, s), c in counter.counts.items() if not s.startswith(RASTERIZER_FILES)) / n
     print(f"\noutside the rasterizer: {outside:.2f} per step")
-    ops = ", ".join(f"{group} {count / n:.0f}" for group, count in counter.operators.most_common())
-    print(f"aten operators per step (on a GPU each is one kernel launch or more, microseconds of host time): {ops}")
+    ops = ", ".join(
+        f"{group} {count / n:.0f} ({counter.launches[group] / n:.0f} queue device work)"
+        for group, count in counter.operators.most_common()
+    )
+    print(
+        "aten operators per step (on a GPU each costs the host a dispatch, microseconds; those that queue device work "
+        f"launch a kernel or a copy, the rest are views and bare allocations): {ops}"
+    )
     if args.top_operators > 0:
-        print("\n| operators per step | issued in (forward, and backward where it runs Python) |\n|---|---|")
+        print(
+            "\n| operators per step | of them queuing device work | issued in (forward, and backward where it runs "
+            "Python) |\n|---|---|---|"
+        )
         for function, count in counter.operator_sites.most_common(args.top_operators):
-            print(f"| {count / n:.0f} | `{function}` |")
+            print(f"| {count / n:.0f} | {counter.launch_sites[function] / n:.0f} | `{function}` |")
 
 
 if __name__ == "__main__":
