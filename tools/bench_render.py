@@ -257,6 +257,9 @@ def pose_path_report(
     table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
     header = ("part", "ms", "of the novel-view frame", "operators", "queue device work", "host waits")
     print(format_table(table, header))
+    if getattr(avatar, "pose_compiled", False):
+        print("\nThe counts are of the eager code: under a dispatch mode (the counter) torch.compile runs the "
+              "function it wraps eagerly; the times are the compiled frame's.")  # fmt: skip
     with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
