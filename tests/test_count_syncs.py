@@ -42,3 +42,16 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
     entry = sum(c for s, c in polar_sites.items() if "_polar_values_entry_major" in s)
     assert entry == 1 and newton >= 1  # the all-good test is the only sync before the loop
     assert by_kind["item / float / bool"] == 1 + entry + newton  # float(y[0]); float(y[1]) was not counted
+
+
+def test_counter_tells_launches_from_views() -> None:
+    """A view is an operator the host dispatches but no launch; arithmetic is both (framework.host_waits)."""
+    tool = load_tool("count_syncs")
+    counter = tool.SyncCounter()
+    counter.step = 0
+    x = torch.randn(6, 4)
+    with counter:
+        (x.view(-1).unsqueeze(0) * 2).sum()  # view, unsqueeze; mul, sum
+    assert sum(counter.operators.values()) == 4
+    assert sum(counter.launches.values()) == 2
+    assert sum(counter.launch_sites.values()) == 2
