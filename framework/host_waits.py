@@ -16,6 +16,8 @@ launch count is a lower bound.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -102,3 +104,23 @@ class OperatorCount(TorchDispatchMode):
         self.launches += queues_device_work(func, wait)
         self.waits += wait is not None
         return func(*args, **kwargs)
+
+
+def cuda_device_events(fn: Callable[[], object]) -> int | None:
+    """Kernels, copies and fills a CUDA device ran for one call of `fn`, as the profiler records them (CUPTI).
+
+    Why: the dispatch-mode counters above see aten operators only, and under them `torch.compile` runs the functions
+    it wraps eagerly, so they cannot count what compiled code launches (fused Triton kernels); the profiler records
+    what the device itself ran, compiled or not. None without a CUDA device, or when the profiler recorded no device
+    event (no CUPTI): never a zero that was not measured."""
+    if not torch.cuda.is_available():
+        return None
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    count = sum(1 for event in prof.events() if event.device_type == DeviceType.CUDA)
+    return count or None

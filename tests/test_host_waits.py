@@ -3,9 +3,10 @@ allocations, counted against a hand count of small programs whose kernels are kn
 
 from __future__ import annotations
 
+import pytest
 import torch
 
-from framework.host_waits import OperatorCount
+from framework.host_waits import OperatorCount, cuda_device_events
 
 
 def _count(fn) -> OperatorCount:
@@ -45,3 +46,29 @@ def test_arithmetic_reductions_and_waits_queue_device_work() -> None:
     assert counter.waits == 2, counter.waits
     assert counter.launches == 2 + 1 + 1 + 1 + 2, counter.launches
     assert counter.operators - counter.launches >= 1  # the t() view at least
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the answer without a CUDA device")
+def test_device_events_are_none_without_cuda() -> None:
+    """Not measured is None, never a zero."""
+    assert cuda_device_events(lambda: torch.randn(3) * 2) is None
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_device_events_count_eager_kernels_and_a_compiled_fusion() -> None:
+    """Eager: one kernel per element-wise operator. Compiled: Triton fuses the chain into one kernel, which the
+    dispatch-mode counter cannot see (under it dynamo runs the function eagerly)."""
+    x = torch.randn(1000, device="cuda")
+
+    def chain(t: torch.Tensor) -> torch.Tensor:
+        return ((t * 2 + 1).relu() - 3).abs()
+
+    assert cuda_device_events(lambda: chain(x)) == 5  # mul, add, relu, sub, abs
+    compiled = torch.compile(chain)
+    compiled(x)  # compiles
+    assert cuda_device_events(lambda: compiled(x)) == 1
+    counter = OperatorCount()
+    with counter:
+        compiled(x)
+    assert counter.launches == 5  # the eager operators: what the counter sees

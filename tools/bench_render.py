@@ -40,7 +40,7 @@ import torch
 
 from framework.cameras import orbit_cameras
 from framework.evaluation.gemm_rate import gemm_rate
-from framework.host_waits import OperatorCount
+from framework.host_waits import OperatorCount, cuda_device_events
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
@@ -261,6 +261,11 @@ def pose_path_report(
         print("\nThe counts are of the eager code: under a dispatch mode (the counter) torch.compile runs the "
               "function it wraps eagerly; the times are the compiled frame's.")  # fmt: skip
     with torch.no_grad():
+        device_events = cuda_device_events(lambda: pose_frame(avatar, batches[-1], sh_degree, lambda: None))
+    if device_events is not None:
+        print(f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included (torch.profiler; "
+              f"compiled code as it runs): {device_events}")  # fmt: skip
+    with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
     rate = max(gemm_rate(max(3, args.repeats // 2), dev))
@@ -273,6 +278,7 @@ def pose_path_report(
     )
     return {
         "backend": name, "parts_ms": parts, "parts_operators_launches_waits": counts, "novel_view_ms": view,
+        "cuda_device_events_per_frame": device_events,
         "corrector_gflop": gflop,
         "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
     }  # fmt: skip
