@@ -16,6 +16,7 @@ launch count is a lower bound.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -82,8 +83,8 @@ def wait_kind(func, args, kwargs) -> str | None:
 
 def queues_device_work(func, wait: str | None) -> bool:
     """Whether this aten call queues work on a GPU (a kernel or a copy), given its `wait_kind`: not a view (a new
-    header on the host, `func.is_view`) nor a bare allocation. A host wait always does: it copies a value across
-    (`lift_fresh`, a view in the schema, marks a tensor made from Python values, copied to the device)."""
+    header on the host, `func.is_view`) nor a bare allocation. A host wait always does, as it copies a value across;
+    that includes `lift_fresh`, which the schema calls a view but which marks a tensor made from Python values."""
     return wait is not None or not (func.is_view or func in NO_DEVICE_WORK)
 
 
@@ -118,9 +119,20 @@ def cuda_device_events(fn: Callable[[], object]) -> int | None:
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
+    _start_cupti()
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         fn()
         torch.cuda.synchronize()
     count = sum(1 for event in prof.events() if event.device_type == DeviceType.CUDA)
     return count or None
+
+
+@functools.cache
+def _start_cupti() -> None:
+    """A throwaway profiler session, once per process: the first one starts CUPTI, so no measured session is first."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]):
+        torch.zeros(1, device="cuda")
+        torch.cuda.synchronize()

@@ -260,9 +260,8 @@ def pose_path_report(
     if getattr(avatar, "pose_compiled", False):
         print("\nThe counts are of the eager code: under a dispatch mode (the counter) torch.compile runs the "
               "function it wraps eagerly; the times are the compiled frame's.")  # fmt: skip
-    with torch.no_grad():  # counted in a second profiler session: the first starts CUPTI
-        device_events = [cuda_device_events(lambda: pose_frame(avatar, batches[-1], sh_degree, lambda: None))
-                         for _ in range(2)][-1]  # fmt: skip
+    with torch.no_grad():
+        device_events = cuda_device_events(lambda: pose_frame(avatar, batches[-1], sh_degree, lambda: None))
     if device_events is not None:
         print(f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included (torch.profiler; "
               f"compiled code as it runs): {device_events}")  # fmt: skip
