@@ -56,3 +56,23 @@ def test_sections_synchronise_only_on_cuda_unless_switched_off() -> None:
     assert tool.device_sync_for(torch.device("cuda", 0), "auto") is torch.cuda.synchronize
     with pytest.raises(ValueError, match="sections-sync"):
         tool.device_sync_for(torch.device("cpu"), "always")
+
+
+def test_cores_ceiling_matches_a_hand_computed_step() -> None:
+    """Three rows: a serial 10 ms row, a 2-thread 20 ms row (36 ms CPU) and a 5 ms row at 1.1 cores. On 2 threads
+    the two single-core rows would take 10/2 and 5.5/2 ms: (10 + 36 + 5.5) / (5 + 20 + 2.75) = 51.5 / 27.75."""
+    tool = load_tool("bench_train")
+    summary = {
+        "rows": {
+            "glue": {"mean_ms": 10.0, "cpu_mean_ms": 10.0},
+            "backward": {"mean_ms": 20.0, "cpu_mean_ms": 36.0},
+            "optimizer": {"mean_ms": 5.0, "cpu_mean_ms": 5.5},
+        }
+    }
+    c = tool.cores_ceiling(summary, threads=2)
+    assert c["single_core_rows"] == ["glue", "optimizer"]
+    assert c["single_core_ms"] == pytest.approx(15.0)
+    assert c["cores"] == pytest.approx(51.5 / 35.0)
+    assert c["ceiling"] == pytest.approx(51.5 / 27.75)
+    # one thread: nothing to gain, the ceiling is the measured figure
+    assert tool.cores_ceiling(summary, threads=1)["ceiling"] == pytest.approx(51.5 / 35.0)
