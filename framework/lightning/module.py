@@ -7,6 +7,7 @@ parameters and their Adam state between steps.
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -29,6 +30,7 @@ from framework.lightning.divergence import (
 )
 from framework.model.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.model.losses import CompositeLoss
+from framework.runtime import cpu_threads
 from framework.types import FrameBatch, Gaussians
 
 
@@ -170,19 +172,39 @@ class SplatModule(L.LightningModule):
         log_now = self.logs_this_step()  # before opt.step(), which advances global_step
         self._set_learning_rates(optimizer, step)
         out = self.render_batch(batch, step)
-        total, terms = self.loss_fn(out.render, batch, out.aux)
-        params = self.avatar.gaussians.params
-        info = {
-            "means2d": out.render.means2d,
-            "radii": out.render.radii,
-            "width": batch.cameras.width,
-            "height": batch.cameras.height,
-            "n_cameras": batch.cameras.num,
-        }
-        if self.densifier is not None:
-            self.densifier.step_pre_backward(params, self._densifier_optimizers(optimizer), self.densifier_state,
-                                             step, info)  # fmt: skip
+        # the small work around the render and the backward on one CPU thread (`framework.runtime.cpu_threads`)
+        small_work = functools.partial(cpu_threads, self.cfg.get("small_work_threads"), self.device)
+        with small_work():
+            total, terms = self.loss_fn(out.render, batch, out.aux)
+            params = self.avatar.gaussians.params
+            info = {
+                "means2d": out.render.means2d,
+                "radii": out.render.radii,
+                "width": batch.cameras.width,
+                "height": batch.cameras.height,
+                "n_cameras": batch.cameras.num,
+            }
+            if self.densifier is not None:
+                self.densifier.step_pre_backward(params, self._densifier_optimizers(optimizer), self.densifier_state,
+                                                 step, info)  # fmt: skip
         self.manual_backward(total)
+        with small_work():
+            return self._update(opt, step, total, terms, out, batch, info, log_now)
+
+    def _update(
+        self,
+        opt: Any,
+        step: int,
+        total: Tensor,
+        terms: dict[str, Tensor],
+        out: Any,
+        batch: FrameBatch,
+        info: dict[str, Any],
+        log_now: bool,
+    ) -> Tensor:
+        """After the backward: the divergence check, the optimizer step, the densifier's bookkeeping and logging."""
+        optimizer = opt.optimizer
+        params = self.avatar.gaussians.params
         if self._deferred(optimizer):
             optimizer.found_inf = self._checks.probe(step, total, terms, optimizer)  # a bad update skips on the device
             try:

@@ -2,6 +2,8 @@
 
 - loss `fault`: zero, except at training step `at_step` (its own call count, from 0), where `kind` = "nan_loss"
   returns NaN and "nan_grad" returns 0 whose gradient into the rendered image is NaN.
+- loss `thread_probe` (zero): appends the CPU threads torch may use to the file `log`, one line per moment of the
+  step: "loss N" in its forward, "backward N" in its backward, "optimizer N" before each optimizer step.
 - SPLATRIG_TEST_STALL_CHECKPOINT_AT=<step> (with SPLATRIG_TEST_STALL_MARKER=<file>): the checkpoint save of that
   step stalls inside torch.save (its temporary file already open), after touching the marker file, so a test can
   kill the process in mid-write.
@@ -15,6 +17,7 @@ from pathlib import Path
 
 import torch
 from torch import Tensor
+from torch.optim.optimizer import register_optimizer_step_pre_hook
 
 from framework.interfaces.loss import Loss
 from framework.registry import register
@@ -45,6 +48,35 @@ class FaultLoss(Loss):
         if self.kind == "nan_loss":
             return render.rgb.new_full((), float("nan"))
         return _NaNGradient.apply(render.rgb)
+
+
+def _log_threads(path: str, moment: str) -> None:
+    with open(path, "a") as fh:
+        fh.write(f"{moment} {torch.get_num_threads()}\n")
+
+
+class _ThreadsInBackward(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, path: str) -> Tensor:  # type: ignore[override]
+        ctx.shape, ctx.path = x.shape, path
+        return x.new_zeros(())
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        _log_threads(ctx.path, "backward")
+        return grad.new_zeros(ctx.shape), None
+
+
+@register("loss", "thread_probe")
+class ThreadProbeLoss(Loss):
+    def __init__(self, log: str) -> None:
+        super().__init__()
+        self.log = str(log)
+        register_optimizer_step_pre_hook(lambda *_: _log_threads(self.log, "optimizer"))
+
+    def forward(self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor]) -> Tensor:
+        _log_threads(self.log, "loss")
+        return _ThreadsInBackward.apply(render.rgb, self.log)
 
 
 class _StallWhilePickled:
