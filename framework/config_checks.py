@@ -66,6 +66,8 @@ def check_train_config(cfg: DictConfig) -> None:
         ("data.num_train_views", "cameras", 24),
         ("data.num_test_views", "cameras", 6),
         ("data.supersample", "rays per pixel side", 1),
+        ("threads", "CPU threads", 2),
+        ("small_work_threads", "CPU threads for the step's losses, optimizer and bookkeeping", 1),
     ):
         _positive_int(cfg, key, what, example)
     _expect(cfg, "callbacks.image_every", lambda v: _is_int(v) and v >= 0, "an integer >= 0 (0: no image grids)",

@@ -56,6 +56,7 @@ CASES = [
     Case("stage1_longer_than_run", "train", "`+experiment=paper_full trainer.max_steps=100 stages.stage1_steps=200`",
          ["+experiment=paper_full", "trainer.max_steps=100", "stages.stage1_steps=200"]),
     Case("resolution_0", "train", "`data.resolution=0`", ["data.resolution=0"]),
+    Case("small_work_threads_0", "train", "`small_work_threads=0`", ["small_work_threads=0"]),
     Case("unknown_component", "train", "`rasterizer.name=torch_reff`", ["rasterizer.name=torch_reff"]),
     # ---- dataset files (framework/data/zju/, framework/data/sequence_dataset.py)
     Case("image_size_mismatch", "train", "`data.root=` a sequence with one 48x30 image among 48x48 ones",
