@@ -78,6 +78,7 @@ VARIANTS: dict[str, list[str]] = {
     "kornia_ssim": ["+loss.terms.dssim.compiled=false"],
     "compile_pose": ["compile.pose=true"],
     "checks_before_update": ["divergence.deferred=false"],  # a GPU's divergence check read before each update
+    "small_work_all_threads": ["small_work_threads=null"],  # losses, optimizer and bookkeeping on every CPU thread
 }
 DEFAULT_VARIANTS = ["default", "log_every_step", "torch_skinning", "polar_float64"]
 
