@@ -172,7 +172,7 @@ class SplatModule(L.LightningModule):
         log_now = self.logs_this_step()  # before opt.step(), which advances global_step
         self._set_learning_rates(optimizer, step)
         out = self.render_batch(batch, step)
-        # the small work around the render and the backward on one CPU thread (`framework.runtime.cpu_threads`)
+        # the small work around the render and the backward on `small_work_threads` CPU threads (framework.runtime)
         small_work = functools.partial(cpu_threads, self.cfg.get("small_work_threads"), self.device)
         with small_work():
             total, terms = self.loss_fn(out.render, batch, out.aux)
