@@ -629,10 +629,12 @@ def cores_ceiling(summary: dict[str, Any], threads: int) -> dict[str, Any]:
     wall = sum(r["mean_ms"] for r in rows.values())
     cpu = sum(r["cpu_mean_ms"] for r in rows.values())
     saved = sum(max(0.0, r["mean_ms"] - r["cpu_mean_ms"] / threads) for r in single.values())
+    single_wall, single_cpu = sum(r["mean_ms"] for r in single.values()), sum(r["cpu_mean_ms"] for r in single.values())
     return {
         "cores": cpu / max(wall, 1e-9),
         "single_core_rows": list(single),
-        "single_core_ms": sum(r["mean_ms"] for r in single.values()),
+        "single_core_ms": single_wall,
+        "other_rows_cores": (cpu - single_cpu) / max(wall - single_wall, 1e-9),
         "step_ms": wall,
         "ceiling": cpu / max(wall - saved, 1e-9),
     }
@@ -650,11 +652,9 @@ def cores_table(results: list[VariantResult], warmup: int, threads: int) -> str:
         if s2 is None:
             continue
         c = cores_ceiling(s2, threads)
-        rest = [r for k, r in s2["rows"].items() if k not in c["single_core_rows"]]
-        rest_cores = sum(r["cpu_mean_ms"] for r in rest) / max(sum(r["mean_ms"] for r in rest), 1e-9)
         lines.append(
             f"| {res.name} | {c['step_ms']:.1f} | {c['cores']:.2f} | {c['single_core_ms']:.1f} "
-            f"({len(c['single_core_rows'])} rows) | **{c['ceiling']:.2f}** | {rest_cores:.2f} |"
+            f"({len(c['single_core_rows'])} rows) | **{c['ceiling']:.2f}** | {c['other_rows_cores']:.2f} |"
         )
     return "\n".join(lines) if len(lines) > 2 else ""
 
@@ -822,10 +822,8 @@ def main(argv: list[str] | None = None) -> int:
             "variants": [
                 {
                     **asdict(r),
-                    "summary": {f"stage{s}": stage_summary(r, s, args.warmup) for s in (1, 2)},
-                    "cores_ceiling_stage2": (
-                        cores_ceiling(s2, threads) if (s2 := stage_summary(r, 2, args.warmup)) else None
-                    ),
+                    "summary": (summary := {f"stage{s}": stage_summary(r, s, args.warmup) for s in (1, 2)}),
+                    "cores_ceiling_stage2": cores_ceiling(summary["stage2"], threads) if summary["stage2"] else None,
                 }
                 for r in ordered
             ],
