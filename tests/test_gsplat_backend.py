@@ -20,6 +20,7 @@ from framework.registry import RASTERIZERS, ComponentUnavailableError
 from framework.types import Cameras
 from plugins.rasterizer import gsplat_backend
 from plugins.rasterizer.gsplat_backend import REASON_NO_CUDA, REASON_NOT_INSTALLED, GsplatRasterizer
+from tests.helpers import float32_ops as f32
 
 load_plugins()
 
@@ -72,40 +73,87 @@ ALPHA_THRESHOLD = 1.0 / 255.0
 
 
 def _rotmat_as_gsplat(quats: Tensor) -> Tensor:
-    """[N, 4] wxyz -> [N, 3, 3] as `quat_to_rotmat` in gsplat's Utils.cuh: scaled by rsqrt(|q|^2) in float32 with no
-    guard, so a zero quaternion (0 * inf) or an underflowing one (|q|^2 -> 0, then inf - inf) gives NaN."""
-    u = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True))  # [N, 4]
-    w, v = u[:, 0, None, None], u[:, 1:]  # [N, 1, 1], [N, 3]
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(-1, 3, 3)  # [v]_x
-    eye = torch.eye(3, dtype=quats.dtype)
-    return (w * w - (v * v).sum(-1)[:, None, None]) * eye + 2 * v[:, :, None] * v[:, None, :] + 2 * w * skew
+    """[N, 4] wxyz float64 holding float32 values -> [N, 3, 3] as `quat_to_rotmat` in gsplat's Utils.cuh, in exactly
+    rounded float32 (`tests/helpers/float32_ops.py`): scaled by rsqrt(|q|^2) with no guard, so a zero quaternion
+    (0 * inf) or an underflowing one (|q|^2 -> 0, then inf - inf) gives NaN. rsqrt is 1 / sqrt, each rounded."""
+    w, x, y, z = quats.unbind(-1)  # [N]
+    norm2 = f32.add(f32.add(f32.add(f32.mul(x, x), f32.mul(y, y)), f32.mul(z, z)), f32.mul(w, w))
+    inv_norm = f32.div(1.0, f32.f32(norm2.sqrt()))
+    w, x, y, z = (f32.mul(v, inv_norm) for v in (w, x, y, z))
+    x2, y2, z2 = f32.mul(x, x), f32.mul(y, y), f32.mul(z, z)
+    xy, xz, yz = f32.mul(x, y), f32.mul(x, z), f32.mul(y, z)
+    wx, wy, wz = f32.mul(w, x), f32.mul(w, y), f32.mul(w, z)
+
+    def one_minus_twice(s: Tensor) -> Tensor:
+        return f32.sub(1.0, f32.mul(2.0, s))
+
+    def twice(a: Tensor, b: Tensor, sign: float) -> Tensor:
+        return f32.mul(2.0, f32.add(a, b) if sign > 0 else f32.sub(a, b))
+
+    rows = [
+        [one_minus_twice(f32.add(y2, z2)), twice(xy, wz, -1), twice(xz, wy, +1)],
+        [twice(xy, wz, +1), one_minus_twice(f32.add(x2, z2)), twice(yz, wx, -1)],
+        [twice(xz, wy, -1), twice(yz, wx, +1), one_minus_twice(f32.add(x2, y2))],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)  # [N, 3, 3]
+
+
+def _conics_as_gsplat(quats, scales, R, t, means, fx, fy, cx, cy, width, height, near, far, eps2d):
+    """The covariance chain of `projection_ewa_3dgs_fused_fwd_kernel` (ProjectionEWA3DGSFused.cu) in exactly rounded
+    float32, each operation in the kernel's order, so it gives the same bits on every CPU (tests/helpers/float32_ops;
+    nvcc's FMA contraction is not emulated): quat_scale_to_covar_preci, covarW2C, persp_proj, add_blur,
+    glm::inverse. -> (camera-space mean [C, N, 3], blurred 2D covariance [C, N, 2, 2], det [C, N], conics
+    [C, N, 3]), all float64 tensors holding float32 values; rows outside [near, far] get z = 1 for the projection, as
+    the kernel returns before dividing by their depth (and no inf reaches the gradients)."""
+    d = torch.float64
+    quats, scales, R, t, means = (v.to(d) for v in (quats, scales, R, t, means))
+    M = f32.mul(_rotmat_as_gsplat(quats), scales[:, None, :])  # [N, 3, 3] R S: one non-zero product per entry
+    covar = f32.matmul(M, M.transpose(-1, -2))  # [N, 3, 3]
+    Rc = R[:, None]  # [C, 1, 3, 3]
+    covar_c = f32.matmul(f32.matmul(Rc, covar[None]), Rc.transpose(-1, -2))  # [C, N, 3, 3]
+    mean_c = f32.add(f32.matmul(Rc, means[None, :, :, None])[..., 0], t[:, None])  # [C, N, 3]
+    x, y, z = mean_c.unbind(-1)  # [C, N]
+    z = torch.where((z < near) | (z > far), torch.ones_like(z), z)
+    fx, fy, cx, cy = (v.to(d) for v in (fx, fy, cx, cy))  # [C, 1]
+    tan_fovx, tan_fovy = f32.div(f32.mul(0.5, float(width)), fx), f32.div(f32.mul(0.5, float(height)), fy)
+    lim_x_pos = f32.add(f32.div(f32.sub(float(width), cx), fx), f32.mul(0.3, tan_fovx))
+    lim_x_neg = f32.add(f32.div(cx, fx), f32.mul(0.3, tan_fovx))
+    lim_y_pos = f32.add(f32.div(f32.sub(float(height), cy), fy), f32.mul(0.3, tan_fovy))
+    lim_y_neg = f32.add(f32.div(cy, fy), f32.mul(0.3, tan_fovy))
+    rz = f32.div(1.0, z)
+    rz2 = f32.mul(rz, rz)
+    tx = f32.mul(z, torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, f32.mul(x, rz))))
+    ty = f32.mul(z, torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, f32.mul(y, rz))))
+    zero = torch.zeros_like(z)
+    J = torch.stack([f32.mul(fx, rz), zero, f32.mul(f32.mul(-fx, tx), rz2),
+                     zero, f32.mul(fy, rz), f32.mul(f32.mul(-fy, ty), rz2)], -1).reshape(*z.shape, 2, 3)  # fmt: skip
+    cov = f32.matmul(f32.matmul(J, covar_c), J.transpose(-1, -2))  # [C, N, 2, 2]
+    a, c = f32.add(cov[..., 0, 0], eps2d), f32.add(cov[..., 1, 1], eps2d)  # add_blur
+    b01, b10 = cov[..., 0, 1], cov[..., 1, 0]  # glm: m[1][0] is row 0, column 1
+    cov = torch.stack([torch.stack([a, b01], -1), torch.stack([b10, c], -1)], -2)
+    det = f32.sub(f32.mul(a, c), f32.mul(b01, b10))  # glm::inverse: m[0][0] m[1][1] - m[1][0] m[0][1]
+    inv_det = f32.div(1.0, det)
+    conics = torch.stack([f32.mul(c, inv_det), f32.mul(-b10, inv_det), f32.mul(a, inv_det)], -1)  # [C, N, 3]
+    return mean_c, cov, det, conics
 
 
 def _project_as_gsplat(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d):
     """`projection_ewa_3dgs_fused_fwd_kernel` (ProjectionEWA3DGSFused.cu) in torch: -> (culled [C, N], radii
-    [C, N, 2] int32, means2d [C, N, 2], depths [C, N], conics [C, N, 3]), values of culled rows unspecified."""
+    [C, N, 2] int32, means2d [C, N, 2], depths [C, N], conics [C, N, 3]), values of culled rows unspecified. The
+    covariance and conic are exactly rounded float32 (`_conics_as_gsplat`: tests/test_conic_precision.py measures
+    their rounding, which must not depend on the CPU)."""
     near, far = (torch.tensor(v, dtype=torch.float32) for v in (near_plane, far_plane))  # C++ `float` parameters
     R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]  # [C, 3, 3], [C, 3]
-    x, y, z = (torch.einsum("cij,nj->cni", R, means) + t[:, None]).unbind(-1)  # [C, N]
+    fx, fy, cx, cy = Ks[:, 0, 0, None], Ks[:, 1, 1, None], Ks[:, 0, 2, None], Ks[:, 1, 2, None]  # [C, 1]
+    mean_c, cov, det, conics = _conics_as_gsplat(
+        quats, scales, R, t, means, fx, fy, cx, cy, width, height, float(near), float(far), eps2d
+    )
+    mean_c, cov, det, conics = (v.to(torch.float32) for v in (mean_c, cov, det, conics))
+    x, y, z = mean_c.unbind(-1)  # [C, N]
     depth_culled = (z < near) | (z > far)  # the kernel keeps z == near and z == far
     z = torch.where(depth_culled, torch.ones_like(z), z)  # the kernel returns before dividing by these
-    fx, fy, cx, cy = Ks[:, 0, 0, None], Ks[:, 1, 1, None], Ks[:, 0, 2, None], Ks[:, 1, 2, None]  # [C, 1]
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)  # [C, N, 2]
-    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy  # persp_proj: the FOV widened by 0.3 tan(fov/2)
-    tx = z * torch.minimum((width - cx) / fx + lim_x, torch.maximum(-(cx / fx + lim_x), x / z))
-    ty = z * torch.minimum((height - cy) / fy + lim_y, torch.maximum(-(cy / fy + lim_y), y / z))
-    zero = torch.zeros_like(z)
-    J = torch.stack([fx / z, zero, -fx * tx / z**2, zero, fy / z, -fy * ty / z**2], -1).reshape(*z.shape, 2, 3)
-    M = _rotmat_as_gsplat(quats) * scales[:, None, :]  # [N, 3, 3]
-    # in the kernel's order (its float32 rounding is what tests/test_conic_precision.py measures): the world
-    # covariance (quat_scale_to_covar_preci), to the camera (covar_world_to_cam), J . J^T (persp_proj), add_blur
-    covar_c = R[:, None] @ (M @ M.transpose(-1, -2))[None] @ R[:, None].transpose(-1, -2)  # [C, N, 3, 3]
-    cov = J @ covar_c @ J.transpose(-1, -2) + eps2d * torch.eye(2)  # [C, N, 2, 2]
-    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    det = a * c - b * b
-    conics = torch.stack([c / det, -b / det, a / det], -1)  # [C, N, 3]
+    a, c = cov[..., 0, 0], cov[..., 1, 1]
     with torch.no_grad():
         op = opacities.expand_as(z)
         extend = torch.sqrt(2.0 * torch.log(op.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD)).clamp_max(3.33)
