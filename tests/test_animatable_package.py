@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
-from trained_avatar import load_tiny, tiny_checkpoint
+from trained_avatar import load_tiny
 
 SH_C1 = 0.4886025119029199
 
 
 @pytest.fixture(scope="module")
-def package(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tiny_avatar")
-    ckpt, cache = tiny_checkpoint(root)
+def package(tiny_avatar, tmp_path_factory):
+    ckpt, cache = tiny_avatar
+    root = tmp_path_factory.mktemp("package")
     out = root / "export"
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache))
     cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "pose=train", "frame=3", "animatable=true",

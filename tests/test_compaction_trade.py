@@ -25,10 +25,8 @@ def test_settings_parse_as_yaml_values_and_unknown_keys_are_refused(tool):
         tool.parse_setting("fold_tolerance")
 
 
-def test_trade_rows_are_the_compactions_they_name(tool, tmp_path_factory, monkeypatch):
-    from trained_avatar import tiny_checkpoint
-
-    ckpt, cache = tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))  # F_a with a random head, F_dw on
+def test_trade_rows_are_the_compactions_they_name(tool, tiny_avatar, tmp_path_factory, monkeypatch):
+    ckpt, cache = tiny_avatar  # F_a with a random head, F_dw on
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     out = tmp_path_factory.mktemp("trade")
     untouched = dict(fold_tolerance=None, prune_tolerance=None, min_weight=0.0, sh_tolerance=0.0, refit_steps=0)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
-from trained_avatar import load_tiny, tiny_checkpoint
+from trained_avatar import load_tiny
 
 from framework.data.motion_files import Motion, read_motion_file, resample
 from framework.data.motion_files.bvh import read_bvh
@@ -259,8 +259,8 @@ def test_studio_params_folder_reads_back_and_a_wrong_body_is_refused(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))
+def tiny(tiny_avatar):
+    return tiny_avatar
 
 
 def test_bvh_moves_the_left_arm_gaussians_of_a_trained_avatar_up(tiny, tmp_path, monkeypatch):

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from trained_avatar import load_tiny, tiny_checkpoint
+from trained_avatar import load_tiny
 
 from framework.lightning.data import collate_frames
 from framework.model.pruning import prune_gaussians
@@ -18,8 +18,8 @@ from framework.scene.compact import DEFAULT_REFIT_STEPS, prune_checkpoint
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))
+def tiny(tiny_avatar):
+    return tiny_avatar
 
 
 @pytest.fixture

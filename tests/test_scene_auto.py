@@ -248,15 +248,15 @@ def test_a_second_pruning_round_prunes_the_refitted_model_again(auto_run, tmp_pa
         prune_checkpoint(ckpt, tmp_path / "none.ckpt", prune_rounds=0, **kw)
 
 
-def test_fold_tolerance_auto_keeps_the_corrector_whole_where_the_run_asked_for_it(tmp_path_factory, monkeypatch):
+def test_fold_tolerance_auto_keeps_the_corrector_whole_where_the_run_asked_for_it(
+    tiny_avatar, tmp_path_factory, monkeypatch
+):
     """`fold_tolerance=auto` reads the run's `scene.fold_corrector`: false (what `+scene=auto` writes for strongly
     pose-dependent appearance) keeps F_a exactly as trained; true (the default), or a tolerance given by hand, tries
     the fold."""
-    from trained_avatar import tiny_checkpoint
-
     from framework.scene.compact import prune_checkpoint
 
-    ckpt, cache = tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))  # paper_full: F_a with a random head
+    ckpt, cache = tiny_avatar  # paper_full: F_a with a random head
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     tmp = tmp_path_factory.mktemp("fold_auto")
     source = torch.load(ckpt, map_location="cpu", weights_only=False)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData, PlyElement
-from trained_avatar import load_tiny, tiny_checkpoint
+from trained_avatar import load_tiny
 
 from framework.formats.splat_ply import SplatFileError, read_splat_ply, write_splat_ply
 from framework.types import Gaussians
@@ -28,8 +28,8 @@ def random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))
+def tiny(tiny_avatar):
+    return tiny_avatar
 
 
 @pytest.mark.parametrize("degree", [0, 1, 3])

@@ -5,14 +5,13 @@ config a rewritten checkpoint would store."""
 from __future__ import annotations
 
 import torch
-from trained_avatar import tiny_checkpoint
 
 from framework.animation.frames import render_rgb
 from framework.lightning.trained_model import datamodule_for, load_module
 
 
-def test_gsplat_checkpoint_renders_on_the_cpu_with_numba(tmp_path_factory, monkeypatch, capsys) -> None:
-    ckpt, cache = tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))
+def test_gsplat_checkpoint_renders_on_the_cpu_with_numba(tiny_avatar, tmp_path_factory, monkeypatch, capsys) -> None:
+    ckpt, cache = tiny_avatar
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
     assert checkpoint["hyper_parameters"]["cfg"]["rasterizer"]["name"] == "numba"

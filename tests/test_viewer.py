@@ -9,7 +9,7 @@ import re
 import numpy as np
 import pytest
 import torch
-from trained_avatar import load_tiny, tiny_checkpoint
+from trained_avatar import load_tiny
 
 from framework.cameras import look_at
 from framework.testing.browser import HeadlessChromium, find_chromium
@@ -25,8 +25,8 @@ from framework.viewer.camera import render_size, viser_camera
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_checkpoint(tmp_path_factory.mktemp("tiny_avatar"))
+def tiny(tiny_avatar):
+    return tiny_avatar
 
 
 def test_viser_camera_is_the_look_at_camera():
