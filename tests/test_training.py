@@ -226,7 +226,8 @@ def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: 
 PAPER_TINY = ["+experiment=paper_full", "body=procedural", "data.body=procedural", "data.resolution=40",
               "data.views=4", "data.frames=6", "data.supersample=1", "data.workers=1", "deformer.grid_resolution=12",
               "gaussians.num=300", "trainer.max_steps=30", "stages.stage1_steps=10", "trainer.val_every=15",
-              "profile.first_reset=5", "profile.reset_every=10", "profile.densify_stop=25",
+              "densifier.first_reset=5", "densifier.reset_every=10", "densifier.refine_stop=25",
+              "densifier.reset_restart=10",
               "densifier.refine_start=2", "densifier.refine_every=5", "callbacks.checkpoint_every=10",
               "callbacks.image_every=0", "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]",
               "eval.fps_frames=4", "threads=1"]  # fmt: skip
