@@ -257,7 +257,9 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     assert deformer.enabled and baked.shape == (module.avatar.gaussians.num, 17)
     with torch.no_grad():
         live = deformer.weights(module.avatar.gaussians.params["means"])
-    torch.testing.assert_close(baked, live, atol=1e-6, rtol=0)
+    # the bake runs the compiled loops (float64 inside), `weights` torch in float32: w0 + F_dw (paper_full's additive
+    # form) is not renormalised, so the float32 lookup's rounding stays whole (a few ulps of 1)
+    torch.testing.assert_close(baked, live, atol=2e-6, rtol=0)
     trained_residual = any(p.abs().max() > 0 for p in deformer.mlp[-1].parameters())
     assert trained_residual, "F_dw never left its zero initialisation: stage 2 did not train it"
     summary = (run / "eval" / "summary.md").read_text()
