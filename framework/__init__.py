@@ -5,4 +5,4 @@
 
 __version__ = "0.1.0"
 
-from framework import config_resolvers as _config_resolvers  # noqa: E402,F401  (registers ${scaled:...})
+from framework import config_resolvers as _config_resolvers  # noqa: E402,F401  (registers ${scaled:...}, ${steps:...})

@@ -56,10 +56,10 @@ def repose_from_files(folder, frame: int, corrections: bool = True) -> dict[str,
         sh[:, :kc] = rig["corrected_sh"][frame]
     P = np.einsum("nk,kij->nij", rig["skin_weights"].astype(np.float64), rig["bone_transforms"][frame][:, :3])  # 2
     A, t = P[:, :, :3], P[:, :, 3]
-    means = np.einsum("nij,nj->ni", A, x) + t  # 3
-    U, D, Vt = np.linalg.svd(A)  # 4: polar decomposition A = R S
+    U, D, Vt = np.linalg.svd(A)  # 3: polar decomposition A = R S
     R = U @ Vt
     S = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * Vt)
+    means = np.einsum("nij,nj->ni", R if str(rig["centres"]) == "rigid" else A, x) + t  # 3: the mean
     qR = Rotation.from_matrix(R).as_quat()[:, [3, 0, 1, 2]]
     quats = quat_multiply(qR, q)
     if str(rig["stretch"]) == "diag":
@@ -82,8 +82,11 @@ def test_package_holds_the_documented_arrays(package):
     rig = np.load(folder / "rig.npz")
     n = len(PlyData.read(str(folder / "canonical.ply"))["vertex"].data)
     F, J = rig["bone_transforms"].shape[:2]
-    assert str(rig["format"]) == "splatrig-animatable-1"
-    assert rig["skin_weights"].shape == (n, J) and np.allclose(rig["skin_weights"].sum(1), 1.0, atol=1e-5)
+    assert str(rig["format"]) == "splatrig-animatable-2"
+    assert str(rig["centres"]) == "rigid" and str(rig["stretch"]) == "diag"  # paper_full's deformer
+    # the paper's additive w0 + F_dw: rows near 1, not renormalised (the tiny avatar's F_dw is random but small)
+    sums = rig["skin_weights"].sum(1)
+    assert rig["skin_weights"].shape == (n, J) and np.abs(sums - 1).max() < 0.5 and np.abs(sums - 1).max() > 1e-3
     assert rig["parents"].shape == (J,) and rig["parents"][0] == -1 and rig["rest_joints"].shape == (J, 3)
     assert len(rig["joint_names"]) == J and rig["poses"].shape == (F, J, 3)
     assert np.allclose(rig["bone_transforms"][:, :, 3], [0, 0, 0, 1])
@@ -138,3 +141,23 @@ def test_reading_the_package_back_poses_the_same_gaussians(package, monkeypatch)
         theirs = pose_frame(pkg, f)
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
             assert torch.allclose(getattr(theirs, name), getattr(ours, name), atol=1e-5), name
+
+
+def test_a_version_1_package_reads_as_blended_centres(package, tmp_path):
+    """Packages written before `centres` existed posed means by A x + t: they still read, as blended."""
+    import shutil
+
+    from framework.formats.animatable import pose_frame, read_package
+
+    _, _, out, _ = package
+    old = tmp_path / "old"
+    shutil.copytree(out / "train_animatable", old)
+    with np.load(old / "rig.npz") as data:
+        arrays = {k: data[k] for k in data.files if k != "centres"}
+    arrays["format"] = np.asarray("splatrig-animatable-1")
+    np.savez(old / "rig.npz", **arrays)
+    pkg, new = read_package(old), read_package(out / "train_animatable")
+    assert pkg.centres == "blended" and new.centres == "rigid"
+    assert (pose_frame(pkg, 0).means - pose_frame(new, 0).means).abs().max() > 1e-4  # the two forms differ
+    pkg.centres = "rigid"
+    torch.testing.assert_close(pose_frame(pkg, 0).means, pose_frame(new, 0).means)

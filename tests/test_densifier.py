@@ -201,6 +201,19 @@ def test_opacity_reset_schedule():
     assert [s for s in range(0, 30_000, 100) if short.is_reset_step(s, state)] == [3000, 11000]
 
 
+def test_reset_restart_fixes_the_stage2_count_whatever_the_stage_switch():
+    """reset_restart (paper_full: stage 2's start in the schedule) anchors the resets after the first, so a run whose
+    stage switch is elsewhere (the "w/o first stage" row: at 0, never reported) resets at the same steps."""
+    dens = DENSIFIERS.build("paper", refine_stop=15_000, reset_restart=5000)
+    for reported in (None, 0, 5000, 8000):
+        state = dens.initialize_state()
+        if reported is not None:
+            dens.restart_schedule(state, reported)
+        assert [s for s in range(0, 30_000, 100) if dens.is_reset_step(s, state)] == [3000, 11000], reported
+    with pytest.raises(ValueError, match="reset_restart"):
+        DENSIFIERS.build("paper", reset_restart=-1)
+
+
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_opacity_reset_clamps_and_zeroes_state(layout):
     n = 4

@@ -73,13 +73,15 @@ def test_boundary_band_is_ignored():
     assert (rgb.grad[band.expand_as(rgb)] == 0).all() and (rgb.grad[~band.expand_as(rgb)] != 0).all()
 
 
-@pytest.mark.parametrize("norm", ["l1", "l2"])
+@pytest.mark.parametrize("norm", ["mse", "rms", "l1"])
 def test_alpha_hand(norm):
     render, batch = make(seed=3)
     loss = LOSSES.build("alpha", norm=norm)(render, batch, {})
     a, m, mb = np64(render.alpha)[..., 0], np64(batch.mask), np64(batch.boundary)
     if norm == "l1":
         expected = (mb * np.abs(a - m)).mean()
+    elif norm == "mse":  # eq. 7's norm squared, per pixel
+        expected = ((mb * (a - m)) ** 2).mean()
     else:  # per image ||M_b (a - m)||_2 / sqrt(H W), then the batch mean
         expected = np.mean([np.linalg.norm(mb[i] * (a[i] - m[i])) / np.sqrt(a[i].size) for i in range(len(a))])
     assert loss.item() == pytest.approx(expected, rel=1e-5)
@@ -89,12 +91,16 @@ def test_alpha_hand(norm):
 
 def test_weight_std():
     render, batch = make()
-    term = LOSSES.build("weight_std")
+    term = LOSSES.build("weight_std")  # eq. 8's Sum_i read as a mean over Gaussians
     std = torch.rand(50, requires_grad=True)
     value = term(render, batch, {"weight_std": std})
     assert value.item() == pytest.approx(float(np64(std).mean()), rel=1e-6)
     value.backward()
     torch.testing.assert_close(std.grad, torch.full_like(std, 1 / 50))
+    summed = LOSSES.build("weight_std", reduction="sum")(render, batch, {"weight_std": std})
+    assert summed.item() == pytest.approx(float(np64(std).sum()), rel=1e-6)
+    with pytest.raises(ValueError, match="reduction"):
+        LOSSES.build("weight_std", reduction="max")
     assert term(render, batch, {}).item() == 0.0
     assert term(render, batch, {"weight_std": torch.zeros(0)}).item() == 0.0
 
@@ -118,8 +124,9 @@ def test_dssim_hand():
     loss = LOSSES.build("dssim")(render, batch, {})
     rgb, img = np64(render.rgb), np64(batch.image)
     maps = [_ssim_map_mirror(rgb[b, ..., c], img[b, ..., c]) for b in range(2) for c in range(3)]
-    expected = np.mean([(1 - m) / 2 for m in maps])
+    expected = np.mean([1 - m for m in maps])  # 3DGS's D-SSIM, the paper's
     assert loss.item() == pytest.approx(expected, abs=1e-5)
+    assert LOSSES.build("dssim", form="half")(render, batch, {}).item() == pytest.approx(expected / 2, abs=1e-5)
     same = RenderOutput(batch.image.clone(), render.alpha, None, render.means2d, render.radii)
     assert LOSSES.build("dssim")(same, batch, {}).item() == pytest.approx(0.0, abs=1e-6)
 

@@ -286,8 +286,11 @@ def test_bvh_moves_the_left_arm_gaussians_of_a_trained_avatar_up(tiny, tmp_path,
     assert left.sum() > 3 and right.sum() > 3
     z = [posed_gaussians(module, torch.as_tensor(motion.poses[i]), torch.as_tensor(motion.roots[i])).means[:, 2]
          for i in range(2)]  # fmt: skip
-    assert float((z[1] - z[0])[left].mean()) > 0.25  # forearm and hand rise by tens of centimetres
-    assert float((z[1] - z[0])[right].abs().max()) < 1e-4
+    rise = float((z[1] - z[0])[left].mean())
+    assert rise > 0.25  # forearm and hand rise by tens of centimetres
+    # the right arm stays, up to the little weight the paper's additive residual w0 + F_dw may give any joint (the
+    # tiny avatar's F_dw is random, ~0.05 per joint): the softmax form gave ~0 there
+    assert float((z[1] - z[0])[right].abs().max()) < 0.1 * rise
 
 
 def test_render_entry_point_plays_a_bvh_at_the_video_frame_rate(tiny, tmp_path):

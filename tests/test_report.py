@@ -150,7 +150,8 @@ def test_paper_table_has_every_row_of_the_sweep():
 TINY_SWEEP = ["body=procedural", "++data.body=procedural", "++data.resolution=40", "++data.views=4",
               "++data.frames=6", "++data.supersample=1", "++data.workers=1", "++deformer.grid_resolution=10",
               "gaussians.num=200", "trainer.max_steps=12", "stages.stage1_steps=4", "trainer.val_every=100",
-              "profile.first_reset=3", "profile.reset_every=4", "profile.densify_stop=10", "densifier.refine_start=2",
+              "densifier.first_reset=3", "densifier.reset_every=4", "densifier.refine_stop=10",
+              "densifier.reset_restart=4", "densifier.refine_start=2",
               "densifier.refine_every=4", "callbacks.checkpoint_every=100", "callbacks.image_every=0",
               "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]", "threads=1",
               "+experiment=paper_full,no_corrector"]  # fmt: skip

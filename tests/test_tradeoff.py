@@ -176,8 +176,10 @@ def _flat(node, prefix: str = "") -> dict[str, object]:
     return out
 
 
-SCHEDULE = {"trainer.max_steps", "stages.stage1_steps", "gaussians.sh_increase_every", "densifier.refine_start",
-            "densifier.refine_stop", "densifier.first_reset", "densifier.reset_every"}  # fmt: skip
+#: every milestone of the schedule (each a fraction of the run's length, conf/profile/*.yaml), and the length
+SCHEDULE = {"trainer.max_steps", "trainer.val_every", "stages.stage1_steps", "gaussians.sh_increase_every",
+            "densifier.refine_start", "densifier.refine_stop", "densifier.refine_every", "densifier.first_reset",
+            "densifier.reset_every", "densifier.reset_restart"}  # fmt: skip
 BUDGET = {"gaussians.num", "densifier.max_gaussians"}
 #: point -> the config keys (or "group." prefixes) it may change relative to the baseline, and must change
 KNOBS = {
@@ -249,6 +251,8 @@ def test_each_point_changes_exactly_its_knob(point: str, profile: str) -> None:
     if point in resolved:
         key, value = resolved[point]
         assert OmegaConf.select(cfg, key) == value
+    if point in ("steps_half", "preset_quick"):  # the whole schedule at half the length (these profiles' steps halve)
+        assert {k: OmegaConf.select(cfg, k) for k in SCHEDULE} == {k: OmegaConf.select(base, k) // 2 for k in SCHEDULE}
 
 
 def test_baseline_is_paper_full() -> None:

@@ -226,7 +226,8 @@ def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: 
 PAPER_TINY = ["+experiment=paper_full", "body=procedural", "data.body=procedural", "data.resolution=40",
               "data.views=4", "data.frames=6", "data.supersample=1", "data.workers=1", "deformer.grid_resolution=12",
               "gaussians.num=300", "trainer.max_steps=30", "stages.stage1_steps=10", "trainer.val_every=15",
-              "profile.first_reset=5", "profile.reset_every=10", "profile.densify_stop=25",
+              "densifier.first_reset=5", "densifier.reset_every=10", "densifier.refine_stop=25",
+              "densifier.reset_restart=10",
               "densifier.refine_start=2", "densifier.refine_every=5", "callbacks.checkpoint_every=10",
               "callbacks.image_every=0", "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]",
               "eval.fps_frames=4", "threads=1"]  # fmt: skip
@@ -256,7 +257,9 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     assert deformer.enabled and baked.shape == (module.avatar.gaussians.num, 17)
     with torch.no_grad():
         live = deformer.weights(module.avatar.gaussians.params["means"])
-    torch.testing.assert_close(baked, live, atol=1e-6, rtol=0)
+    # the bake runs the compiled loops (float64 inside), `weights` torch in float32: w0 + F_dw (paper_full's additive
+    # form) is not renormalised, so the float32 lookup's rounding stays whole (a few ulps of 1)
+    torch.testing.assert_close(baked, live, atol=2e-6, rtol=0)
     trained_residual = any(p.abs().max() > 0 for p in deformer.mlp[-1].parameters())
     assert trained_residual, "F_dw never left its zero initialisation: stage 2 did not train it"
     summary = (run / "eval" / "summary.md").read_text()

@@ -259,6 +259,20 @@ def test_boundary_computed_once_memory_and_disk(tmp_path: Path) -> None:
     assert not torch.equal(other[3].boundary, first[3]) and other.boundary_computations == 1
 
 
+@pytest.mark.parametrize(("size", "downscale", "expected"), [(64, 1, 1), (256, 1, 3), (512, 1, 5), (512, 2, 3)])
+def test_boundary_half_width_scales_with_the_image_side(tmp_path: Path, size: int, downscale: int, expected: int):
+    """boundary_px=5 at boundary_ref_side=512: n = max(1, round(5 * side / 512)) of the output image (after the
+    downscale), and the band is exactly `boundary_mask` at that n."""
+    write_toy_sequence(tmp_path, C=2, F=1, size=size)
+    ds = ZjuMocapDataset(str(tmp_path), protocol=None, boundary_px=5, boundary_ref_side=512, downscale=downscale,
+                         cache_mb=0)  # fmt: skip
+    side = min(ds.width, ds.height)
+    assert ds.boundary_px == expected == max(1, int(5 * side / 512 + 0.5))
+    f, v = ds.sample(1)
+    np.testing.assert_array_equal(ds[1].boundary[0].numpy(), boundary_mask(ds.load_uint8(f, v)[1] >= 128, expected))
+    assert ZjuMocapDataset(str(tmp_path), protocol=None, boundary_px=5, cache_mb=0).boundary_px == 5  # unscaled
+
+
 def test_lazy_uint8_cache_budget(tmp_path: Path) -> None:
     write_toy_sequence(tmp_path, C=3, F=3, size=32)
     one = 32 * 32 * 4  # image + mask, uint8

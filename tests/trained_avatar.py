@@ -55,7 +55,8 @@ def _train_tiny(root: Path, path: Path, cache: Path) -> None:
     sd["avatar.corrector.head.bias"] = rand(sd["avatar.corrector.head.bias"].shape, 0.1)
     last_layer = max((k for k in sd if k.startswith("avatar.deformer.mlp.") and k.endswith(".weight")),
                      key=lambda k: int(k.split(".")[3]))  # fmt: skip
-    sd[last_layer] = rand(sd[last_layer].shape, 1.0)
+    # small enough that w0 + F_dw (paper_full's additive form, not renormalised) stays a usable weight set
+    sd[last_layer] = rand(sd[last_layer].shape, 0.05)
     sd["avatar.pose_refiner.pose_residual"] = rand(sd["avatar.pose_refiner.pose_residual"].shape, 0.05)
     sd["avatar.pose_refiner.joint_residual"] = rand(sd["avatar.pose_refiner.joint_residual"].shape, 0.005)
     partial = path.with_suffix(".partial")

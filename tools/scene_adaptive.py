@@ -38,9 +38,10 @@ SCENES: dict[str, list[str]] = {
 }
 VARIANTS: dict[str, list[str]] = {"paper_full": [], "auto": ["+scene=auto"]}
 #: the smoke run: the full commands at 50 steps, no evaluation inside training (the table measures PSNR itself)
-SMOKE = ["profile.max_steps=50", "profile.stage1_steps=20", "profile.densify_stop=40", "densifier.refine_start=10",
-         "densifier.refine_every=10", "trainer.val_every=50", "callbacks.image_every=1000",
-         "callbacks.checkpoint_every=1000", "eval.after_fit=false", "deformer.grid_resolution=32"]  # fmt: skip
+SMOKE = ["profile.max_steps=50", "profile.schedule.stage1=0.4", "profile.schedule.densify_start=0.2",
+         "profile.schedule.densify_stop=0.8", "profile.schedule.densify_every=0.2", "profile.schedule.sh_every=1",
+         "profile.schedule.val_every=1", "callbacks.image_every=1000", "callbacks.checkpoint_every=1000",
+         "eval.after_fit=false", "deformer.grid_resolution=32"]  # fmt: skip
 SMOKE_REFIT_STEPS = 20  # and a refit as short: the default 1500 steps would be most of the smoke run's time
 
 

@@ -58,6 +58,7 @@ def animatable_package(module, motion: Motion, frames: list[int], corrections: b
         poses=np.stack(poses),
         fps=float(motion.fps or 25.0),
         stretch=str(getattr(avatar.deformer, "stretch", "none")),
+        centres=str(getattr(avatar.deformer, "centres", "blended")),
         sh_degree=int(module.sh_degree(module.trained_steps())),
         corrections=stored,
     )

@@ -4,11 +4,24 @@ Mask edges are where segmentation (and our rendered alpha) is least trustworthy,
 them. Definition used here, checked by a brute-force test: pixel p is in the band (M_b = 0) when some pixel q of the
 opposite label lies within Euclidean distance n of p, i.e. |p - q| <= n between pixel centres. For n = 0 the band is
 empty. Pixels outside the image do not count as either label (an image border is not a silhouette).
+
+Its half-width is a length in the image: the paper's n = 5 is at 512 px, and the same band at another size is
+n = max(1, round(5 * side / 512)) (`scaled_half_width`), so M_b covers the same share of the body at every resolution.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def scaled_half_width(n: int, side: int, ref_side: int | None) -> int:
+    """The band's half-width in pixels of an image whose shorter side is `side`, for `n` pixels at `ref_side`:
+    max(1, round(n * side / ref_side)) (halves up), 0 when n is 0 (no band); `ref_side` None keeps n as it is."""
+    if n < 0 or (ref_side is not None and ref_side <= 0):
+        raise ValueError(f"boundary band: expected n >= 0 and ref_side > 0, got n={n}, ref_side={ref_side}.")
+    if ref_side is None or n == 0:
+        return int(n)
+    return max(1, int(n * side / ref_side + 0.5))
 
 
 def _disk(n: int) -> np.ndarray:

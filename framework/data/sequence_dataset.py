@@ -8,8 +8,9 @@ What a sample is: one (frame, view) pair of the split, as a FrameBatch with B = 
   background with the mask (Animatable NeRF's `mask_bkgd`), float32 in [0, 1]. An optional LRU cache keeps processed
   uint8 images.
 - Mask: foreground as the reader defines it, undistorted and area-downscaled like the image (fractional at the edge).
-- Boundary M_b: 0 within `boundary_px` output pixels of the silhouette (mask >= 0.5), computed once per (frame, view)
-  and cached in memory (bit-packed) and optionally on disk.
+- Boundary M_b: 0 within n output pixels of the silhouette (mask >= 0.5), computed once per (frame, view) and cached in
+  memory (bit-packed) and optionally on disk. n = `boundary_px`, or with `boundary_ref_side` set, `boundary_px` at that
+  image side scaled to the output's shorter side (`framework.data.boundary.scaled_half_width`).
 - Cameras: K converted from OpenCV's pixel convention (centres at integers) to ours (centres at j + 0.5): cx += 0.5,
   cy += 0.5; then for a downscale to W' x H', K'[0] = K[0] * W'/W and K'[1] = K[1] * H'/H. In the half-pixel convention
   a pure scaling of image coordinates is exact for area resampling (output pixel j' covers input [s j', s j' + s),
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 from framework.atomic import atomic_path
-from framework.data.boundary import boundary_mask
+from framework.data.boundary import boundary_mask, scaled_half_width
 from framework.data.zju.layout import ZjuFormatError, ZjuMissingFileError, check_complete
 from framework.data.zju.reader import ZjuCameras
 from framework.geometry import axis_angle_to_rotmat
@@ -184,6 +185,7 @@ class SequenceDataset(MultiViewDataset):
         cache_mb: float,
         boundary_cache: str,
         cache_dir: str | None,
+        boundary_ref_side: int | None = None,
     ) -> None:
         super().__init__()
         name = self.label
@@ -197,7 +199,6 @@ class SequenceDataset(MultiViewDataset):
         self.root = seq.root
         self.split = split
         self.downscale = float(downscale)
-        self.boundary_px = int(boundary_px)
         self.mask_dir = mask_dir
         self.background = 1.0 if white_background else 0.0
         self.mask_background = mask_background
@@ -234,6 +235,7 @@ class SequenceDataset(MultiViewDataset):
         self.src_width, self.src_height = check_files(seq, self.frame_ids, self.views, mask_dir)
         self.width = max(1, int(self.src_width / self.downscale))
         self.height = max(1, int(self.src_height / self.downscale))
+        self.boundary_px = scaled_half_width(int(boundary_px), min(self.width, self.height), boundary_ref_side)
         K = seq.cameras.K_splatrig()  # [C, 3, 3]
         K[:, 0] *= self.width / self.src_width
         K[:, 1] *= self.height / self.src_height

@@ -5,8 +5,9 @@
     <name>/
       canonical.ply   the canonical (rest-pose) Gaussians in the 3DGS PLY layout (framework.formats.splat_ply)
       rig.npz         everything needed to pose them (numpy .npz, float32 unless stated):
-        format             str, "splatrig-animatable-1"
-        skin_weights       [N, J]  blend weights per Gaussian (rows sum to 1), in canonical.ply's vertex order
+        format             str, "splatrig-animatable-2" ("-1": a package written before `centres`, read as blended)
+        skin_weights       [N, J]  blend weights per Gaussian, in canonical.ply's vertex order (rows sum to 1, except
+                           for the paper's additive residual w0 + F_dw, which nothing renormalises: about 1)
         parents            [J] int32, parent joint of each joint (-1 for the root)
         joint_names        [J] str
         rest_joints        [J, 3]  rest joint positions (the skeleton the transforms were made with)
@@ -15,6 +16,7 @@
         poses              [F, J, 3]  the axis-angle joint rotations that produced them (informative)
         fps                float, frames per second of the F frames
         stretch            str, "diag" or "none" (step 4 below)
+        centres            str, "rigid" or "blended" (step 3 below)
         sh_degree          int, the SH degree the avatar renders with
         Present only when the avatar has a pose-dependent appearance corrector (the paper's F_a), which an engine
         cannot evaluate: its output per frame, i.e. the corrected canonical attributes
@@ -28,9 +30,9 @@ implementation and the avatar's own render):
      corrected_* arrays, replace q_i, s_i, o_i and the first Kc SH coefficients by frame f's values (means never
      change).
   2. Blend: [A_i | t_i] = sum_k skin_weights[i, k] * T_fk[:3, :]  (3x3 A_i, 3-vector t_i).
-  3. Mean: x'_i = A_i x_i + t_i.
-  4. Polar decomposition A_i = R_i S_i (R_i a rotation, S_i symmetric; R_i = U V^T from the SVD A_i = U D V^T).
-     Rotation: q'_i = quat(R_i) * q_i (Hamilton product). Scale: with stretch = "diag", s'_il = s_il +
+  3. Polar decomposition A_i = R_i S_i (R_i a rotation, S_i symmetric; R_i = U V^T from the SVD A_i = U D V^T).
+     Mean: with centres = "rigid" (the paper's eq. 4), x'_i = R_i x_i + t_i; with "blended", x'_i = A_i x_i + t_i.
+  4. Rotation: q'_i = quat(R_i) * q_i (Hamilton product). Scale: with stretch = "diag", s'_il = s_il +
      log(max(a_l^T S_i a_l, 1e-4)), a_l = the l-th column of the rotation matrix of q_i; with "none", s'_i = s_i.
   5. SH: coefficients of degree l rotate with R_i (colour seen from direction R_i d after posing equals colour from d
      before); degree 1 is the vector v = (-c_3, -c_1, c_2) per channel turning into R_i v, degrees 2 and 3 by the
@@ -53,7 +55,10 @@ from framework.errors import SplatrigError
 from framework.formats.splat_ply import read_splat_ply, write_splat_ply
 from framework.types import Gaussians
 
-FORMAT = "splatrig-animatable-1"
+FORMAT = "splatrig-animatable-2"
+#: formats this reader accepts -> the centres of a package that does not state them (version 1: always blended)
+READABLE = {FORMAT: None, "splatrig-animatable-1": "blended"}
+CENTRES = ("rigid", "blended")
 CANONICAL = "canonical.ply"
 RIG = "rig.npz"
 CORRECTED_KEYS = ("corrected_opacity_logits", "corrected_log_scales", "corrected_quats", "corrected_sh")
@@ -76,6 +81,7 @@ class AnimatablePackage:
     stretch: str
     sh_degree: int
     corrections: dict[str, np.ndarray] | None  # CORRECTED_KEYS -> [F, N, ...], or None
+    centres: str = "blended"  # step 3: "rigid" (R x + t) or "blended" (A x + t), as the avatar's deformer posed them
 
     @property
     def num_frames(self) -> int:
@@ -97,6 +103,7 @@ def write_package(out_dir: str | os.PathLike, package: AnimatablePackage) -> Pat
         "poses": np.asarray(package.poses, dtype=np.float32),
         "fps": np.asarray(float(package.fps)),
         "stretch": np.asarray(package.stretch),
+        "centres": np.asarray(package.centres),
         "sh_degree": np.asarray(int(package.sh_degree)),
     }
     for key, value in (package.corrections or {}).items():
@@ -121,8 +128,12 @@ def read_package(path: str | os.PathLike) -> AnimatablePackage:
             raise PackageError(f"{root}: missing {name}; an animatable package holds {CANONICAL} and {RIG}.")
     with np.load(root / RIG, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
-    if str(arrays.get("format", "")) != FORMAT:
-        raise PackageError(f"{root / RIG}: format is {arrays.get('format')!r}, expected {FORMAT!r}.")
+    fmt = str(arrays.get("format", ""))
+    if fmt not in READABLE:
+        raise PackageError(f"{root / RIG}: format is {arrays.get('format')!r}, expected one of {sorted(READABLE)}.")
+    centres = str(arrays["centres"]) if "centres" in arrays else READABLE[fmt]
+    if centres not in CENTRES:
+        raise PackageError(f"{root / RIG}: centres is {centres!r}, expected one of {CENTRES}.")
     canonical = read_splat_ply(root / CANONICAL)
     n, j = arrays["skin_weights"].shape
     if n != canonical.num or arrays["bone_transforms"].shape[1:] != (j, 4, 4):
@@ -143,6 +154,7 @@ def read_package(path: str | os.PathLike) -> AnimatablePackage:
         stretch=str(arrays["stretch"]),
         sh_degree=int(arrays["sh_degree"]),
         corrections=corrections,
+        centres=centres,
     )
 
 
@@ -167,4 +179,5 @@ def pose_frame(package: AnimatablePackage, frame: int) -> Gaussians:
     device = package.canonical.means.device
     weights = torch.from_numpy(np.asarray(package.skin_weights, dtype=np.float32)).to(device)
     transforms = torch.from_numpy(np.asarray(package.bone_transforms[frame], dtype=np.float32)).to(device)
-    return apply_lbs(corrected_canonical(package, frame), weights, transforms, package.stretch)
+    return apply_lbs(corrected_canonical(package, frame), weights, transforms, package.stretch,
+                     centres=package.centres)  # fmt: skip

@@ -13,19 +13,23 @@ from framework.registry import register
 @register("deformer", "lbs_residual")
 class LBSResidualDeformer(LBSDeformerBase):
     """Grid weights w0 refined by dw = F_dw(x) = MLP(posenc(x)) with a zero-initialised last layer (so training starts
-    from the grid weights), in one of two forms (`residual`):
+    from the grid weights), in one of three forms (`residual`):
 
-    - "softmax" (ours): w = softmax(log(w0 + eps) + dw) = normalise((w0 + eps) exp(dw)). The residual acts on
-      log-weights, so the weights stay non-negative and sum to one by construction. `eps` (1e-6) lets a joint the
-      grid gives no weight gain some if the data demands (dw must reach about log(w / eps) ~ 14), while leaking at
-      most J * eps at start.
-    - "additive" (the paper): w = w0 + dw, as written; nothing keeps the result non-negative or summing to one.
+    - "additive" (the paper, as written): w = w0 + dw. Nothing keeps the result non-negative or summing to one; it
+      starts as the grid's partition of unity, and L_w regularises these very weights.
+    - "additive_normalised": w = max(w0 + dw, 0) / sum_k max(w0 + dw, 0)_k, the paper's sum made a valid weight set
+      (non-negative, summing to one, so a rigid motion of every bone moves the Gaussian rigidly). A joint the grid
+      gives no weight gains none (the clamp's gradient is 0 there).
+    - "softmax": w = softmax(log(w0 + eps) + dw) = normalise((w0 + eps) exp(dw)). The residual acts on log-weights,
+      so the weights stay non-negative and sum to one by construction. `eps` (1e-6) lets a joint the grid gives no
+      weight gain some if the data demands (dw must reach about log(w / eps) ~ 14), while leaking at most J * eps.
 
     Disabled (stage 1) it is plain `lbs` and its parameters are unused. After training, `bake` stores the final
-    weights per Gaussian so F_dw is not evaluated at inference.
+    weights per Gaussian so F_dw is not evaluated at inference. The compiled CPU loops of
+    `framework.rig.compiled_weights` know "additive" and "softmax"; "additive_normalised" runs in torch.
     """
 
-    RESIDUALS = ("softmax", "additive")
+    RESIDUALS = ("additive", "additive_normalised", "softmax")
 
     def __init__(self, hidden: int = 32, layers: int = 4, num_freqs: int = 4, eps: float = 1e-6,
                  residual: str = "softmax", **kwargs) -> None:  # fmt: skip
@@ -64,14 +68,23 @@ class LBSResidualDeformer(LBSDeformerBase):
         dw = self.mlp(enc.reshape(-1, enc.shape[-1]))  # [M, J]
         return self.combine, dw.reshape(*enc.shape[:-1], dw.shape[-1])  # [..., J]
 
+    def _weights_compiled(self, points: Tensor) -> bool:
+        return self.combine != "additive_normalised" and super()._weights_compiled(points)
+
     @property
     def residual_eps(self) -> float:
         return self.eps
 
     def refine(self, points: Tensor, w: Tensor) -> Tensor:
+        grid = w
         combine, dw = self.residual(points)
         if dw is None:
             return w
         if combine == "additive":
             return w + dw
+        if combine == "additive_normalised":
+            w = (w + dw).clamp_min(0.0)
+            total = w.sum(-1, keepdim=True)
+            # every weight clamped to 0 (F_dw far off): fall back to the grid's weights rather than divide by 0
+            return torch.where(total > 0, w / torch.where(total > 0, total, torch.ones_like(total)), grid)
         return torch.softmax(torch.log(w + self.eps) + dw, dim=-1)

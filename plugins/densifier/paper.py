@@ -8,10 +8,12 @@ opacities before the pose-dependent corrector), which are the ones densification
 Schedule (global training steps `step`):
   * refine (clone, split, prune) every `refine_every` steps for refine_start < step < refine_stop;
   * opacity reset, the paper's schedule: at `first_reset` (3000 in the paper, during stage 1), then every
-    `reset_every` (6000) steps counted from the start T of stage 2 (T + 6000, T + 12000, ...). The trainer's stage
-    switch calls `restart_schedule(state, T)`; a run without a stage 1 never calls it and resets at first_reset,
-    first_reset + reset_every, ... Resets belong to densification (as in 3DGS): none at or after refine_stop.
-    Profiles scale first_reset / reset_every with their schedule length (conf/profile/*.yaml);
+    `reset_every` (6000) steps counted from the start T of stage 2 (T + 6000, T + 12000, ...). T is `reset_restart`
+    when set (paper_full sets it from the profile's schedule, so a row that moves the stage switch, such as "w/o
+    first stage", keeps the resets where they were); else the step the trainer's stage switch reports
+    (`restart_schedule(state, T)`); a run with neither resets at first_reset, first_reset + reset_every, ...
+    Resets belong to densification (as in 3DGS): none at or after refine_stop. Every milestone is a fraction of the
+    run in the profile's `schedule:` (conf/profile/*.yaml);
   * after the first reset, Gaussians larger than `prune_scale3d * scene_scale` are pruned as well (3DGS).
 Splits replace a Gaussian by `split_factor` samples drawn from it with scales / (0.8 * split_factor); clones copy it.
 Growth never takes N above `max_gaussians` (the highest-gradient candidates win), which bounds CPU cost.
@@ -48,6 +50,7 @@ class PaperDensifier(Densifier):
         max_gaussians: int | None = None,
         split_factor: int = 2,
         verbose: bool = False,
+        reset_restart: int | None = None,
     ) -> None:
         if refine_every <= 0 or reset_every <= 0:
             raise ValueError(
@@ -55,6 +58,8 @@ class PaperDensifier(Densifier):
             )
         if split_factor < 2:
             raise ValueError(f"densifier 'paper': split_factor must be >= 2, got {split_factor}.")
+        if reset_restart is not None and reset_restart < 0:
+            raise ValueError(f"densifier 'paper': reset_restart must be >= 0 or null, got {reset_restart}.")
         if not 0.0 < reset_opacity < 1.0:
             raise ValueError(f"densifier 'paper': reset_opacity must be in (0, 1), got {reset_opacity}.")
         self.grad_threshold = grad_threshold
@@ -63,6 +68,7 @@ class PaperDensifier(Densifier):
         self.refine_every = refine_every
         self.reset_every = reset_every
         self.first_reset = first_reset
+        self.reset_restart = reset_restart
         self.prune_opacity = prune_opacity
         self.reset_opacity = reset_opacity
         self.grow_scale3d = grow_scale3d
@@ -84,7 +90,8 @@ class PaperDensifier(Densifier):
         }
 
     def restart_schedule(self, state: dict[str, Any], step: int) -> None:
-        """Stage 2 begins at `step`: from here on, resets come every `reset_every` steps counted from it."""
+        """Stage 2 begins at `step`: from here on, resets come every `reset_every` steps counted from it (unless
+        `reset_restart` fixes that step in the config)."""
         state["stage2_start"] = int(step)
 
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:
@@ -118,7 +125,7 @@ class PaperDensifier(Densifier):
     def is_reset_step(self, step: int, state: dict[str, Any]) -> bool:
         if step >= self.refine_stop:
             return False
-        start = state.get("stage2_start")
+        start = self.reset_restart if self.reset_restart is not None else state.get("stage2_start")
         if start is not None and step >= start:
             return step > start and (step - start) % self.reset_every == 0
         return step >= self.first_reset and (step - self.first_reset) % self.reset_every == 0

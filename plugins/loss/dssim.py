@@ -1,4 +1,5 @@
-"""D-SSIM = (1 - SSIM) / 2 with kornia's Gaussian-window SSIM (window 11, sigma 1.5), moments filtered in one call."""
+"""D-SSIM = 1 - SSIM (3DGS's, which the paper uses) or (1 - SSIM) / 2, with kornia's Gaussian-window SSIM (window 11,
+sigma 1.5), moments filtered in one call."""
 
 from __future__ import annotations
 
@@ -18,6 +19,10 @@ def to_nchw(x: Tensor) -> Tensor:
 class DSSIMLoss(Loss):
     """Structural dissimilarity over the whole image, mean over pixels, channels and the batch.
 
+    `form` "full" (paper_full): 1 - SSIM. The paper takes D-SSIM "the same as that in 3DGS", whose code computes
+    1 - SSIM, so the paper's weight (0.2) applies to that. "half": (1 - SSIM) / 2 (the project's earlier form, in
+    [0, 1] like the L1 term; at the same weight it halves the term).
+
     'same' padding (reflected borders) keeps border pixels in the loss, as 3DGS training does. Images smaller than
     the window use the largest window the reflection allows (down to one pixel).
 
@@ -29,10 +34,16 @@ class DSSIMLoss(Loss):
     switch).
     """
 
-    def __init__(self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True) -> None:
+    FORMS = {"full": 1.0, "half": 0.5}
+
+    def __init__(self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True,
+                 form: str = "full") -> None:  # fmt: skip
         super().__init__()
         if window_size < 1 or window_size % 2 == 0:
             raise ValueError(f"loss 'dssim': window_size must be a positive odd number, got {window_size}.")
+        if form not in self.FORMS:
+            raise ValueError(f"loss 'dssim': form must be one of {tuple(self.FORMS)}, got '{form}'.")
+        self.form = form
         self.window_size = window_size
         self.foreground_only = foreground_only
         self.compiled = compiled
@@ -45,4 +56,4 @@ class DSSIMLoss(Loss):
         # Reflected borders need the half window below the image size: tiny renders get a smaller window.
         window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
         ssim = ssim_map(pred, target, window, compiled=None if self.compiled else False)  # [B, 3, H, W]
-        return ((1.0 - ssim) / 2.0).mean()
+        return (1.0 - ssim).mean() * self.FORMS[self.form]
