@@ -3,10 +3,18 @@
 
 from setuptools import find_namespace_packages, find_packages, setup
 
+
+def shipped_as(folder: str, package: str) -> list[str]:
+    """`package` and one package per sub-folder of `folder` (the config groups), so setuptools installs each
+    folder's YAML files as package data of a declared package."""
+    return [package] + [f"{package}.{sub}" for sub in find_namespace_packages(where=folder, exclude=["__pycache__", "*.__pycache__"])]
+
+
 packages = (
     find_packages(include=["framework", "framework.*", "plugins", "plugins.*"])
     + find_namespace_packages(include=["hydra_plugins", "hydra_plugins.*"])
-    + ["framework.conf", "framework.sweeps"]
+    + shipped_as("conf", "framework.conf")
+    + shipped_as("sweeps", "framework.sweeps")
 )
 
 setup(packages=packages, package_dir={"framework.conf": "conf", "framework.sweeps": "sweeps"})
