@@ -9,8 +9,11 @@ network (headless, no sandbox, no GPU, no background networking, a fresh profile
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -37,6 +40,19 @@ def find_chromium() -> str | None:
 
 class BrowserError(RuntimeError):
     pass
+
+
+def _stop_process_group(proc: subprocess.Popen) -> None:
+    """Terminate the browser and every helper process of its session; kill whatever is left after 10 s."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        pass
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
 
 
 class HeadlessChromium:
@@ -66,7 +82,8 @@ class HeadlessChromium:
         profile = Path(self._profile.name)
         cmd = [self.executable, *FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
                f"--window-size={self.width},{self.height}", "about:blank"]  # fmt: skip
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # its own session, so that close() can stop the helper processes it starts too
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         port_file = profile / "DevToolsActivePort"
         deadline = time.monotonic() + self.timeout
         while not (port_file.is_file() and port_file.read_text().strip()):
@@ -87,13 +104,15 @@ class HeadlessChromium:
             self._ws.close()
             self._ws = None
         if self._proc is not None:
-            self._proc.terminate()
-            try:
-                self._proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
+            _stop_process_group(self._proc)
             self._proc = None
+        # a helper that was writing into the profile when it was stopped can leave a file behind for a moment
+        for _ in range(50):
+            try:
+                self._profile.cleanup()
+                return
+            except OSError:
+                time.sleep(0.1)
         self._profile.cleanup()
 
     # ------------------------------------------------------------------------------------------------ protocol
