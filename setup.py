@@ -7,7 +7,8 @@ from setuptools import find_namespace_packages, find_packages, setup
 def shipped_as(folder: str, package: str) -> list[str]:
     """`package` and one package per sub-folder of `folder` (the config groups), so setuptools installs each
     folder's YAML files as package data of a declared package."""
-    return [package] + [f"{package}.{sub}" for sub in find_namespace_packages(where=folder, exclude=["__pycache__", "*.__pycache__"])]
+    groups = find_namespace_packages(where=folder, exclude=["__pycache__", "*.__pycache__"])
+    return [package] + [f"{package}.{group}" for group in groups]
 
 
 packages = (
