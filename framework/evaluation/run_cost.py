@@ -35,7 +35,7 @@ def distinct_frame_items(dataset, limit: int) -> list[int]:
     """Item indices of up to `limit` different frames, spread over the split (one view each)."""
     seen: dict[int, int] = {}
     for i in range(len(dataset)):
-        frame = dataset.sample(i)[0] if hasattr(dataset, "sample") else int(dataset[i].frame[0])
+        frame = dataset.sample(i)[0]
         seen.setdefault(frame, i)
     items = list(seen.values())
     step = max(1, len(items) // max(limit, 1))

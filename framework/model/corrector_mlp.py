@@ -85,6 +85,12 @@ class MLPCorrector(Corrector):
         if key in missing_keys[first:]:
             missing_keys.remove(key)
 
+    def corrected_rows(self) -> Tensor:
+        return self.active_rows
+
+    def set_corrected_rows(self, rows: Tensor) -> None:
+        self.active_rows = rows
+
     @property
     def num_sh_out(self) -> int:
         """SH coefficients corrected: all of degree <= sh_degree (all_sh) or the DC term only."""

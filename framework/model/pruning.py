@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from framework.guards import HIDDEN_OPACITY_LOGIT
+from framework.interfaces.corrector import Corrector
 from framework.interfaces.rasterizer import Rasterizer
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.optim_surgery import keep_rows, update_params
@@ -70,16 +71,16 @@ def contributions(avatar: Avatar, batches: Iterable[FrameBatch], rasterizer: Ras
     return total
 
 
-def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: torch.nn.Module | None = None) -> int:
+def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: Corrector | None = None) -> int:
     """Keep the Gaussians selected by the bool mask `keep` [N]; returns how many were removed. A partially folded
     `corrector`'s rows (`MLPCorrector.active_rows`) are renumbered to the kept Gaussians."""
     before = params.num
     keep_rows(params.params, None, keep)
-    rows = getattr(corrector, "active_rows", None)
+    rows = None if corrector is None else corrector.corrected_rows()
     if rows is not None and rows.numel():
         new_index = torch.cumsum(keep.long(), 0) - 1  # [N] row of each kept Gaussian after the removal
-        corrector.active_rows = new_index[rows[keep[rows]]]
-        if not corrector.active_rows.numel():  # every corrected Gaussian went: nothing is pose-dependent any more
+        corrector.set_corrected_rows(new_index[rows[keep[rows]]])
+        if not corrector.corrected_rows().numel():  # every corrected Gaussian went: nothing is pose-dependent any more
             raise ValueError("pruning removed every Gaussian the partially folded corrector corrects; fold it whole.")
     return before - params.num
 

@@ -233,15 +233,15 @@ def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_p
 
 # ------------------------------------------------------------------------------------------------- compacting
 def bake_weight_residual(module) -> bool:
-    """Store the final blend weights per Gaussian and drop F_dw (the stored config becomes `deformer=lbs`)."""
+    """Store the final blend weights per Gaussian and drop what only computed them (`Deformer.release_after_bake`:
+    F_dw, and the stored config becomes `deformer=lbs`)."""
     from framework.scene.auto import group_option
 
     if not module.bake_weights():
         return False
-    deformer = module.avatar.deformer
-    if getattr(deformer, "mlp", None) is not None:
-        deformer.mlp = None  # unused once weights are baked; its parameters leave the checkpoint
-        module.cfg["deformer"] = group_option("deformer", "lbs", module.cfg["deformer"])
+    replacement = module.avatar.deformer.release_after_bake()
+    if replacement is not None:
+        module.cfg["deformer"] = group_option("deformer", replacement, module.cfg["deformer"])
     return True
 
 
@@ -287,7 +287,7 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
     from framework.lightning.data import collate_frames
 
     dataset = dm.train_set
-    frames = sorted({dataset.sample(i)[0] for i in range(len(dataset))}) if hasattr(dataset, "sample") else None
+    frames = sorted({dataset.sample(i)[0] for i in range(len(dataset))})
     if max_frames and frames and len(frames) > max_frames:
         keep = {frames[int(round(k))] for k in torch.linspace(0, len(frames) - 1, max_frames).tolist()}
     else:
@@ -323,17 +323,10 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
 def rebuildable_skin_weights(module) -> bool:
     """True when the stored blend weights are the body's weight field at the canonical means (no F_dw residual in
     them), so a loaded model rebuilds them exactly (`deformer=lbs` binds the field; `bake_weights` samples it)."""
-    avatar = module.avatar
-    params = avatar.gaussians.params
-    weights = params["skin_weights"] if "skin_weights" in params else None
-    deformer = avatar.deformer
-    if weights is None or getattr(deformer, "mlp", None) is not None or not hasattr(deformer, "weights"):
+    params = module.avatar.gaussians.params
+    if "skin_weights" not in params:
         return False
-    if getattr(deformer, "field", None) is None:
-        return False
-    with torch.no_grad():
-        field = deformer.weights(params["means"])
-    return torch.allclose(field, weights.detach(), rtol=0.0, atol=1e-6)  # the same lookup: equal to float rounding
+    return module.avatar.deformer.rebuilds_weights(params["means"].detach(), params["skin_weights"].detach())
 
 
 def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path, skin_weights: bool = True) -> None:
