@@ -3,7 +3,7 @@
 `OffsetSkinning` (below) is what a third party would write: LBS with the body's weight field plus a learned per-joint
 offset as its stage-2 part, registered in the deformer registry as a plugin module registers itself, and removed
 again after the test. It is trained through `framework.train.run` on tests/trained_avatar.py's tiny paper_full setup
-(and that setup's rendered data), then compacted with `framework.scene.compact.prune_checkpoint`.
+(and that setup's rendered data), then compacted with `framework.compaction.compact.prune_checkpoint`.
 """
 
 from __future__ import annotations
@@ -103,8 +103,8 @@ def _renders(module, dm, items: int = 3) -> list[Tensor]:
 def test_a_third_party_deformer_gets_stage_switching_baking_and_compaction(
     offset_skinning: type, tiny_avatar: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from framework.compaction.compact import prune_checkpoint
     from framework.lightning.trained_model import datamodule_for, load_module
-    from framework.scene.compact import prune_checkpoint
 
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tiny_avatar[1]))  # the tiny avatar's rendered data
     key = "avatar.deformer.offset"

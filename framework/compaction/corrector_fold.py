@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from framework.compaction.pruning import contributions
+from framework.compaction.render_check import RenderCheck, largest_passing
 from framework.geometry import quat_normalize
 from framework.model.avatar import Avatar
-from framework.model.render_check import RenderCheck, largest_passing
 from framework.splat.sh import SH_C0
 from framework.types import FrameBatch, Gaussians
 
@@ -136,8 +137,6 @@ def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int
     _restore(p, kept)
     rows = corrector.corrected_rows()
     if partial and rows is not None and not rows.numel() and n > 1:
-        from framework.model.pruning import contributions
-
         order = torch.argsort(variation * contributions(avatar, batches).max)  # least needed first
 
         def fold_first(k: int) -> float:  # k < n: an empty active_rows would mean "every row"

@@ -7,7 +7,7 @@ one whose largest weight over every training view and pose stays below a thresho
 outside the training step (`torch_ref` has one; other backends fall back to it).
 
 Beyond the threshold, `prune_within_tolerance` removes Gaussians in the order of a score while the training frames
-still render within a tolerance of the unpruned model (`framework.model.render_check`): densification leaves many
+still render within a tolerance of the unpruned model (`framework.compaction.render_check`): densification leaves many
 small, faint Gaussians whose sum matters little, and the images, not a fixed weight, decide how many. The score
 compaction uses is the mean squared blending weight over the pixels a Gaussian covers (`BlendWeights.mean_square`):
 removing it changes each of those pixels by about its weight times a colour difference, so the sum of squares is the
@@ -30,12 +30,12 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from framework.compaction.render_check import RenderCheck, largest_passing
 from framework.guards import HIDDEN_OPACITY_LOGIT
 from framework.interfaces.corrector import Corrector
 from framework.interfaces.rasterizer import Rasterizer
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.optim_surgery import keep_rows, update_params
-from framework.model.render_check import RenderCheck, largest_passing
 from framework.splat.sh import sh_degree_of_bases
 from framework.types import BlendWeights, FrameBatch
 
