@@ -36,8 +36,8 @@ def main() -> int:
         with reported_as_message():
             ckpt = str(cfg.ckpt)
             if cfg.prune:
+                from framework.compaction.compact import prune_checkpoint
                 from framework.config_checks import check_prune_config
-                from framework.scene.compact import prune_checkpoint
 
                 check_prune_config(cfg)
                 report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,

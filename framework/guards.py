@@ -65,7 +65,7 @@ POLAR_SINGULAR_TOL = 1e-6
 float64 SVD path of `polar_rotation_values(method="newton")`; both give the same values where both apply."""
 
 HIDDEN_OPACITY_LOGIT = -1e4
-"""Opacity logit that hides a Gaussian while a compaction step tries removing it (`framework.model.pruning.
+"""Opacity logit that hides a Gaussian while a compaction step tries removing it (`framework.compaction.pruning.
 prune_within_tolerance`): sigmoid(-1e4) is exactly 0 in float32, below the rasterizers' 1/255 alpha cull, so the
 render equals the one without the Gaussian; finite, so a corrector's added logit cannot make inf - inf."""
 

@@ -5,7 +5,7 @@ whose colour change is negligible, bakes F_dw into per-Gaussian weights, folds F
 training frames render within `fold_tolerance` RMS colour without it, removes more Gaussians (the least needed per
 pixel they cover first) while they stay within `prune_tolerance` and, if F_a was kept, folds it for as many Gaussians
 as `fold_tolerance` allows; with `refit_steps`, refits the remaining Gaussians to the training images; then prints
-Gaussians, size, render fps and PSNR before and after (`framework.scene.compact`).
+Gaussians, size, render fps and PSNR before and after (`framework.compaction.compact`).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from framework.errors import reported_as_message
 
 def prune_from_config(cfg: DictConfig):
     """What `python -m framework.prune` does with its composed config; returns the `PruneReport`."""
+    from framework.compaction.compact import prune_checkpoint
     from framework.config_checks import check_prune_config
-    from framework.scene.compact import prune_checkpoint
 
     check_prune_config(cfg)
     report = prune_checkpoint(

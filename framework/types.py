@@ -118,7 +118,7 @@ class RenderOutput:
 class BlendWeights:
     """What each Gaussian adds to the images, as composited: its blending weights w = T * alpha over every (pixel,
     camera) pair where it contributes (after the alpha cull and early termination), summarised per Gaussian.
-    Pruning ranks by them (`framework.model.pruning`)."""
+    Pruning ranks by them (`framework.compaction.pruning`)."""
 
     max: Tensor  # [N] the largest w
     square_sum: Tensor  # [N] sum of w^2 (float64: sums over many frames)

@@ -5,6 +5,7 @@ worker, and the tiny trained avatar that several modules share."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,11 @@ import torch
 import framework.testing.properties  # noqa: F401  (registers and loads the profile)
 
 XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+
+# The benchmark tools' helpers (tools/_bench) import by package name, as when a tool runs as a script from tools/.
+TOOLS = str(Path(__file__).resolve().parents[1] / "tools")
+if TOOLS not in sys.path:
+    sys.path.insert(0, TOOLS)
 
 if XDIST_WORKER is not None:
     # The workers already keep every core busy: a second torch thread per worker only oversubscribes them. Tests that

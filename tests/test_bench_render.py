@@ -36,7 +36,7 @@ def test_written_out_pose_path_renders_the_avatars_image(tool, avatar, degree) -
     coefficients, so a path that asked for degree 3 could not render it at all."""
     import copy
 
-    from framework.model.pruning import drop_sh_bands
+    from framework.compaction.pruning import drop_sh_bands
 
     body = avatar.body
     centre = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2

@@ -9,9 +9,10 @@ import math
 import pytest
 import torch
 
+from framework import compiled_threads
 from framework.geometry import axis_angle_to_rotmat
 from framework.guards import LBS_MIN_STRETCH
-from framework.rig import compiled_skinning, compiled_threads
+from framework.rig import compiled_skinning
 from framework.rig.compiled_skinning import lbs_with_sh_frames_trainable
 from framework.rig.lbs import lbs_with_sh_frames
 from framework.types import Gaussians

@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch import Tensor
 
+from framework import compiled_threads
 from framework.model.gaussian_init import from_body_surface
 from framework.registry import REGISTRIES
-from framework.rig import compiled_threads
 from framework.rig.compiled_weights import smooth_weights_compiled
 from framework.rig.lbs import six_points, weight_std
 from framework.rig.weight_field import WeightField

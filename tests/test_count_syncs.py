@@ -45,7 +45,7 @@ def test_counter_counts_each_sync_once_and_nothing_else() -> None:
 
 
 def test_counter_tells_launches_from_views() -> None:
-    """A view is an operator the host dispatches but no launch; arithmetic is both (framework.host_waits)."""
+    """A view is an operator the host dispatches but no launch; arithmetic is both (_bench.host_waits)."""
     tool = load_tool("count_syncs")
     counter = tool.SyncCounter()
     counter.step = 0

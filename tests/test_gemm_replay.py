@@ -4,9 +4,8 @@ recorded, with its shapes, and the count and FLOPs match the closed form of a de
 from __future__ import annotations
 
 import torch
+from _bench.gemm_rate import record_gemms, replay_gemms
 from torch import nn
-
-from framework.evaluation.gemm_rate import record_gemms, replay_gemms
 
 
 def test_an_mlp_forward_backward_records_its_three_products_per_layer() -> None:

@@ -1,12 +1,11 @@
-"""framework.host_waits: which aten calls queue device work (a kernel or a copy) and which are views or bare
+"""_bench.host_waits: which aten calls queue device work (a kernel or a copy) and which are views or bare
 allocations, counted against a hand count of small programs whose kernels are known."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-
-from framework.host_waits import OperatorCount, cuda_device_events
+from _bench.host_waits import OperatorCount, cuda_device_events
 
 
 def _count(fn) -> OperatorCount:

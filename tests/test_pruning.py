@@ -1,4 +1,4 @@
-"""Learned pruning (`framework.model.pruning`): blending weights against the float64 reference, renders unchanged
+"""Learned pruning (`framework.compaction.pruning`): blending weights against the float64 reference, renders unchanged
 when only Gaussians that never show are removed, SH band energy against Monte-Carlo integration."""
 
 from __future__ import annotations
@@ -10,15 +10,15 @@ import pytest
 import torch
 
 from framework.cameras import orbit_cameras
-from framework.model.avatar import Avatar, GaussianParams
-from framework.model.gaussian_init import from_body_surface
-from framework.model.pruning import (
+from framework.compaction.pruning import (
     contributions,
     drop_sh_bands,
     negligible_sh_degree,
     prune_gaussians,
     sh_band_rms,
 )
+from framework.model.avatar import Avatar, GaussianParams
+from framework.model.gaussian_init import from_body_surface
 from framework.plugins import load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.splat.sh import SH_C0, sh_basis
@@ -174,7 +174,7 @@ def _corrected_avatar(body, pose_weight: float) -> Avatar:
 def test_folding_a_pose_independent_corrector_leaves_renders_unchanged():
     """F_a with no pose input is one constant correction: folded into the Gaussians (latents and MLP gone), every
     pose renders as before, to float tolerance; the reference is the unfolded avatar's own render."""
-    from framework.model.corrector_fold import fold_corrector
+    from framework.compaction.corrector_fold import fold_corrector
 
     body = BODIES.build("procedural")
     avatar, batches = _corrected_avatar(body, pose_weight=0.0), _batches(body)
@@ -188,7 +188,7 @@ def test_folding_a_pose_independent_corrector_leaves_renders_unchanged():
 
 
 def test_a_pose_dependent_corrector_is_measured_on_the_renders_and_kept():
-    from framework.model.corrector_fold import fold_corrector
+    from framework.compaction.corrector_fold import fold_corrector
 
     body = BODIES.build("procedural")
     avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
@@ -221,8 +221,8 @@ def test_a_partial_fold_keeps_the_mlp_on_its_rows_and_the_mean_correction_on_the
     """Folding F_a for part of the Gaussians: the renders stay within the tolerance (measured here), the rows F_a
     still corrects get exactly the unfolded corrector's output, the folded rows carry the mean of its output over the
     poses in their own parameters and get no correction, and the row list survives a state-dict round trip."""
+    from framework.compaction.corrector_fold import fold_corrector
     from framework.geometry import quat_normalize
-    from framework.model.corrector_fold import fold_corrector
 
     body = BODIES.build("procedural")
     avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
@@ -267,7 +267,7 @@ def test_a_partial_fold_keeps_the_mlp_on_its_rows_and_the_mean_correction_on_the
 def test_pruning_renumbers_the_rows_of_a_partially_folded_corrector():
     """Removing Gaussians that never show from a partially folded avatar leaves its renders unchanged: the rows the
     corrector still corrects follow their Gaussians (without the renumbering they would correct the wrong ones)."""
-    from framework.model.corrector_fold import fold_corrector
+    from framework.compaction.corrector_fold import fold_corrector
 
     body = BODIES.build("procedural")
     avatar, batches = _corrected_avatar(body, pose_weight=30.0), _batches(body)
@@ -284,8 +284,8 @@ def test_pruning_renumbers_the_rows_of_a_partially_folded_corrector():
 
 
 def test_pruning_within_a_tolerance_removes_faint_gaussians_and_keeps_the_renders_within_it():
-    from framework.model.pruning import prune_within_tolerance
-    from framework.model.render_check import RenderCheck
+    from framework.compaction.pruning import prune_within_tolerance
+    from framework.compaction.render_check import RenderCheck
 
     body = BODIES.build("procedural")
     avatar, batches = _avatar(body), _batches(body)

@@ -1,5 +1,5 @@
-"""The refit after pruning (`framework.model.refit`): it moves the Gaussians and nothing else, lowers the run's own loss
-on the training frames, and gives back the parameters it started from when the loss turns non-finite."""
+"""The refit after pruning (`framework.compaction.refit`): it moves the Gaussians and nothing else, lowers the run's
+own loss on the training frames, and gives back the parameters it started from when the loss turns non-finite."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import torch
 import yaml
 from trained_avatar import load_tiny
 
+from framework.compaction.compact import DEFAULT_REFIT_STEPS, prune_checkpoint
+from framework.compaction.pruning import prune_gaussians
+from framework.compaction.refit import REFIT_KEYS, refit_gaussians
 from framework.lightning.data import collate_frames
-from framework.model.pruning import prune_gaussians
-from framework.model.refit import REFIT_KEYS, refit_gaussians
-from framework.scene.compact import DEFAULT_REFIT_STEPS, prune_checkpoint
 
 
 @pytest.fixture(scope="module")

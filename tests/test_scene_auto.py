@@ -207,7 +207,7 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     """With `deformer=lbs` the blend weights are the body's field at the means; a refit moves the means, so the
     weights must follow them (as in training) for the compact model to rebuild them on loading rather than store them
     at the old means."""
-    from framework.scene.compact import prune_checkpoint, resolve_prune_tolerance
+    from framework.compaction.compact import prune_checkpoint, resolve_prune_tolerance
 
     run, _ = auto_run
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
@@ -230,7 +230,7 @@ def test_a_second_pruning_round_prunes_the_refitted_model_again(auto_run, tmp_pa
     """`prune_rounds=2`: the first round is the one-round compaction (deterministic), then the refitted model is
     pruned again within the same tolerance of its own renders and refitted again. So it keeps at most the one-round
     model's Gaussians, refits twice as long, and its counts add up to the Gaussians it ends with."""
-    from framework.scene.compact import prune_checkpoint
+    from framework.compaction.compact import prune_checkpoint
 
     run, _ = auto_run
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
@@ -254,7 +254,7 @@ def test_fold_tolerance_auto_keeps_the_corrector_whole_where_the_run_asked_for_i
     """`fold_tolerance=auto` reads the run's `scene.fold_corrector`: false (what `+scene=auto` writes for strongly
     pose-dependent appearance) keeps F_a exactly as trained; true (the default), or a tolerance given by hand, tries
     the fold."""
-    from framework.scene.compact import prune_checkpoint
+    from framework.compaction.compact import prune_checkpoint
 
     ckpt, cache = tiny_avatar  # paper_full: F_a with a random head
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))

@@ -91,7 +91,7 @@ def test_a_static_fit_compacts_and_refits(whole_run, tmp_path: Path, monkeypatch
     """`framework.prune` on a scene without a body: faint Gaussians go, the rest are refitted, the report says there
     are no skin weights (rather than "stored"), and the compact file loads and renders the test views no worse than
     a prune of the same Gaussians without the refit."""
-    from framework.scene.compact import prune_checkpoint
+    from framework.compaction.compact import prune_checkpoint
 
     root, _ = whole_run
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(root / "cache"))
@@ -280,8 +280,8 @@ def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path
     # the same avatar's novel-pose frames with the compiled CPU rasterizer: torch_ref's images to float32 rounding
     # (a pixel may move by one pair's weight at the 1/255 cut, tests/test_numba_rasterizer.py), timed through the
     # same interleaved path the compaction tools use
-    from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, use_rasterizer
-    from framework.lightning.trained_model import datamodule_for
+    from framework.evaluation.run_cost import distinct_frame_items, use_rasterizer
+    from framework.lightning.trained_model import datamodule_for, interleaved_fps
 
     dm = datamodule_for(module)
     poses = dm.split("novel_pose")

@@ -13,10 +13,10 @@ colour, the rasterizer), timed in a further pass of frames with the clock read a
 is over those frames, so the parts add up to about, not exactly, the novel-pose frame of the first table,
 and a last line bounds the novel-pose / novel-view ratio from below on this machine: the novel-view frame plus F_a's
 forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measured in the same run
-(`framework.evaluation.gemm_rate`), with nothing charged for the rest of the pose path.
+(`_bench.gemm_rate`), with nothing charged for the rest of the pose path.
 
 The parts table also counts, in one frame, the operators each part issues, those of them that queue device work (a
-kernel or a copy; the others are views and bare allocations) and the host waits among them (`framework.host_waits`):
+kernel or a copy; the others are views and bare allocations) and the host waits among them (`_bench.host_waits`):
 what a GPU's host pays per frame whatever the device computes. `--accelerator-path` runs a
 GPU's torch code on a CPU (the compiled CPU paths off), so those counts are a GPU's on any machine.
 
@@ -37,12 +37,12 @@ import time
 from collections.abc import Callable
 
 import torch
+from _bench.gemm_rate import gemm_rate
+from _bench.host_waits import OperatorCount, cuda_device_events
 
 from framework.cameras import orbit_cameras
-from framework.evaluation.gemm_rate import gemm_rate
-from framework.host_waits import OperatorCount, cuda_device_events
+from framework.evaluation.frame_timing import synchronize, time_frames
 from framework.model.avatar import Avatar, GaussianParams
-from framework.model.frame_timing import synchronize, time_frames
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
 from framework.runtime import default_device, use_compiled_paths
@@ -134,7 +134,7 @@ def pose_frame_parts(
 
 def pose_frame_operators(avatar: Avatar, batch: FrameBatch, sh_degree: int) -> dict[str, tuple[int, int, int]]:
     """(operators issued, those queuing device work, host waits) of each part of one novel-pose frame
-    (`framework.host_waits`): on a GPU each operator costs the host a dispatch, each of the second kind a kernel
+    (`_bench.host_waits`): on a GPU each operator costs the host a dispatch, each of the second kind a kernel
     launch or a copy too, and each wait drains the device's queue."""
     counter = OperatorCount()
     marks: list[tuple[int, int, int]] = []
@@ -252,7 +252,7 @@ def pose_path_report(
     pose_ops = [sum(c[i] for k, c in counts.items() if k != "rasterizer") for i in (0, 1, 2)]
     view = view_ms[name]
     print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued, those "
-          f"queuing device work and host waits of one frame, framework.host_waits):\n")  # fmt: skip
+          f"queuing device work and host waits of one frame, _bench.host_waits):\n")  # fmt: skip
     table = [(k, f"{v:.1f}", f"{v / view:.2f}x", *counts[k]) for k, v in parts.items()]
     table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
     header = ("part", "ms", "of the novel-view frame", "operators", "queue device work", "host waits")
@@ -289,10 +289,11 @@ SCALING_FRACTIONS = (1.0, 0.5, 0.25, 0.02)
 
 def subset_avatar(avatar: Avatar, count: int, seed: int = 0) -> Avatar:
     """A copy of `avatar` with `count` of its Gaussians, drawn at random (so the subset covers the body as the whole
-    model does); a partially folded corrector keeps its rows among them (`framework.model.pruning.prune_gaussians`)."""
+    model does); a partially folded corrector keeps its rows among them
+    (`framework.compaction.pruning.prune_gaussians`)."""
     import copy
 
-    from framework.model.pruning import prune_gaussians
+    from framework.compaction.pruning import prune_gaussians
 
     sub = copy.deepcopy(avatar)
     n = sub.gaussians.num

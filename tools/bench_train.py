@@ -61,8 +61,8 @@ import framework.train as train_entry  # first: it sets the OpenMP thread policy
 UNATTRIBUTED = "Lightning loop (outside every section)"
 
 import torch  # noqa: E402  (after framework.train on purpose)
+from _bench.gemm_rate import gemm_rate, record_gemms, replay_gemms  # noqa: E402
 
-from framework.evaluation.gemm_rate import gemm_rate, record_gemms, replay_gemms  # noqa: E402
 from framework.runtime import use_compiled_paths  # noqa: E402
 
 # name -> Hydra overrides; a variant whose overrides do not compose (e.g. a key an older commit lacks) is skipped.

@@ -14,7 +14,7 @@ Default settings: the model as trained; F_a kept whole (`fold_tolerance=null`); 
 3/255; F_a folded whole (`fold_tolerance=1.0`); pruning further, to 0.045 and 0.06 RMS. A setting is `name=key=value,
 key=value` with `framework.prune`'s keys (values as YAML: `null`, numbers, `auto`). Each compact model goes to
 `<out>/<name>.ckpt` with its report `<out>/<name>.json`; a setting whose two files exist is not compacted again, so an
-interrupted run resumes. Frame rates: `framework.evaluation.run_cost.interleaved_fps` (all models in one process,
+interrupted run resumes. Frame rates: `framework.lightning.trained_model.interleaved_fps` (all models in one process,
 round by round, medians). Targets (`--target-fps`, `--budget-db`) default to `docs/results/scene_adaptive.md`'s for
 the simpler scenes: 1.5x the reference's novel-pose frame rate at less than 0.3 dB.
 """
@@ -109,8 +109,8 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
     """Each setting's compact model and report (as a dict), made once: a model whose report names the same source
     and options is reused (an interrupted run resumes), anything else is compacted again. The report's "after" is
     the compact model's own measure (sizes and PSNR); the source is measured once, by `trade`, not per setting."""
+    from framework.compaction.compact import measure_module, prune_checkpoint
     from framework.lightning.trained_model import datamodule_for, load_module
-    from framework.scene.compact import measure_module, prune_checkpoint
 
     made = {}
     for name, options in settings.items():
@@ -135,9 +135,8 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
 def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], warmup: int, repeats: int,
           rounds: int, device: str, rasterizer: str | None = None) -> list[TradeRow]:  # fmt: skip
     """Compact, measure PSNR, time interleaved; one row per setting (the model as trained included if asked)."""
-    from framework.evaluation.run_cost import interleaved_fps
-    from framework.lightning.trained_model import datamodule_for, load_module
-    from framework.scene.compact import measure_module
+    from framework.compaction.compact import measure_module
+    from framework.lightning.trained_model import datamodule_for, interleaved_fps, load_module
 
     out.mkdir(parents=True, exist_ok=True)
     made = compact_all(ckpt, out, settings, device)

@@ -36,7 +36,7 @@ import framework.train as train_entry  # first: it sets the OpenMP thread policy
 import torch  # noqa: E402  (after framework.train on purpose)
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
-from framework.host_waits import queues_device_work, wait_kind  # noqa: E402
+from _bench.host_waits import queues_device_work, wait_kind  # noqa: E402
 
 aten = torch.ops.aten
 RASTERIZER_FILES = ("framework/splat/", "plugins/rasterizer/")
@@ -101,7 +101,7 @@ class SyncCounter(TorchDispatchMode):
         self.launch_sites: Counter[str] = Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kind = wait_kind(func, args, kwargs or {})  # the rules: framework.host_waits
+        kind = wait_kind(func, args, kwargs or {})  # the rules: _bench.host_waits
         if self.step is not None:
             site = _site()
             if func is aten.lift_fresh.default and site.startswith(DATA_FILES):

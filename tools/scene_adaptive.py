@@ -10,7 +10,7 @@ Scenes (synthetic studio, `framework/data/studio.py`):
   deep pose-dependent folds, plus a loose skirt that follows the pelvis with lag and swing (not the body's skinning).
 Per scene: two trainings (`+experiment=paper_full` and `+experiment=paper_full +scene=auto`, subprocesses, run folders
 `<out>/<scene>/<variant>`), then in this process, one after the other: the paper_full model measured, the auto model
-pruned (`framework.scene.compact.prune_checkpoint`, which measures before and after). Speed follows
+pruned (`framework.compaction.compact.prune_checkpoint`, which measures before and after). Speed follows
 tools/bench_render.py's rules; training time is the fit loop's wall time and peak memory the training process's peak
 RSS (CUDA: peak allocated), both from the run's `train_stats.json`. A finished training is not repeated (delete its
 folder to redo it), so an interrupted comparison resumes. Extra `--set key=value` overrides go to every training.
@@ -68,9 +68,8 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     """paper_full measured and auto pruned (sizes and PSNR before and after; `prune_options` go to
     `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
     interleaved over `rounds` rounds (medians), rendered with `rasterizer` (default: the one they trained with)."""
-    from framework.evaluation.run_cost import interleaved_fps
-    from framework.lightning.trained_model import datamodule_for, load_module
-    from framework.scene.compact import measure_module, prune_checkpoint
+    from framework.compaction.compact import measure_module, prune_checkpoint
+    from framework.lightning.trained_model import datamodule_for, interleaved_fps, load_module
 
     full_ckpt = scene_dir / "paper_full" / "checkpoints" / "final.ckpt"
     module = load_module(full_ckpt, map_location=_device())
@@ -98,8 +97,8 @@ def _device() -> str:
 
 
 def scene_table(name: str, result: dict) -> str:
+    from framework.compaction.compact import skin_weights_outcome
     from framework.plugins import format_table
-    from framework.scene.compact import skin_weights_outcome
 
     rows = []
     base = result["measures"]["paper_full"]
@@ -127,7 +126,7 @@ def scene_table(name: str, result: dict) -> str:
         within = comp["prune_tolerance"]
         pruned += f" ({comp['removed_within_tolerance']} of them the least needed, within {within:.4f})"
     if fold:
-        from framework.model.corrector_fold import fold_outcome
+        from framework.compaction.corrector_fold import fold_outcome
 
         pruned += (f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
                    f"tolerance {fold['tolerance']:.4f}")  # fmt: skip

@@ -20,10 +20,13 @@ def animatable_package(module, motion: Motion, frames: list[int], corrections: b
     every frame's bone transforms; with `corrections`, the corrector's per-frame output when it changes anything."""
     avatar = module.avatar
     body = avatar.body
-    if body is None or not hasattr(avatar.deformer, "bake"):
+    if body is None:
         raise SplatrigError("animatable=true: this model has no skinned body (a static scene); export a PLY instead.")
-    if "skin_weights" not in avatar.gaussians.params:
-        module.bake_weights()
+    if "skin_weights" not in avatar.gaussians.params and not module.bake_weights():
+        raise SplatrigError(
+            f"animatable=true: deformer '{avatar.deformer.registry_name}' has no blend weights to "
+            f"bake, so the model cannot be exported as skinned Gaussians; export a PLY instead."
+        )
     canonical = avatar.gaussians.gaussians()
     camera = point_camera(module.device)
     transforms, poses, corrected = [], [], {k: [] for k in CORRECTED_FIELDS}
@@ -57,8 +60,8 @@ def animatable_package(module, motion: Motion, frames: list[int], corrections: b
         bone_transforms=np.stack(transforms),
         poses=np.stack(poses),
         fps=float(motion.fps or 25.0),
-        stretch=str(getattr(avatar.deformer, "stretch", "none")),
-        centres=str(getattr(avatar.deformer, "centres", "blended")),
+        stretch=str(avatar.deformer.stretch),
+        centres=str(avatar.deformer.centres),
         sh_degree=int(module.sh_degree(module.trained_steps())),
         corrections=stored,
     )

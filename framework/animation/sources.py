@@ -16,9 +16,10 @@ SPLITS = ("train", "novel_view", "novel_pose")
 def reference_root(dm) -> np.ndarray | None:
     """[4, 4] root transform of the first training frame (where retargeted motions start), None without roots."""
     train = dm.train_set
-    if not hasattr(train, "roots"):
+    roots = train.roots()
+    if roots is None:
         return None
-    return train.roots()[train.frame_ids[0]].double().numpy()
+    return roots[train.frame_ids[0]].double().numpy()
 
 
 def body_rig(body) -> Rig | None:
@@ -41,12 +42,13 @@ def load_motion(module, dm, spec: str, fps: float | None = None) -> tuple[Motion
         dataset = dm.split(spec)
         frames = list(dataset.frame_ids)
         poses = dataset.poses()[frames].numpy()
-        roots = dataset.roots()[frames].numpy() if hasattr(dataset, "roots") else None
+        roots = dataset.roots()
+        roots = None if roots is None else roots[frames].numpy()
         return Motion(poses, roots, None, spec), frames
     if not path.exists() and not path.suffix:
         raise SplatrigError(f"motion={spec}: neither a split ({', '.join(SPLITS)}) nor an existing motion file.")
     # a body with frozen joints takes poses of its full skeleton (body.input_pose folds them), so retarget onto that
-    skeleton = getattr(body, "base_body", body)
+    skeleton = body.input_body
     motion = read_motion_file(path, body_rig(skeleton), skeleton.num_joints, reference_root(dm))
     if fps:
         motion = resample(motion, float(fps))

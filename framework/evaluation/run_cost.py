@@ -1,10 +1,10 @@
 """What a trained model costs: render speed (novel view, novel pose), time per training step, Gaussian count and size.
 
 Written into results.json at the end of training (`framework.train`), so the trade-off report
-(`framework.reporting.tradeoff`) can set quality against speed and size; `framework.scene.compact` measures compact
+(`framework.reporting.tradeoff`) can set quality against speed and size; `framework.compaction.compact` measures compact
 models with the same functions.
 
-Render speed follows tools/bench_render.py's rules (`framework.model.frame_timing`): the whole frame is timed,
+Render speed follows tools/bench_render.py's rules (`framework.evaluation.frame_timing`): the whole frame is timed,
 synchronised on CUDA, median of `repeats` frames after `warmup`; the real-time path uses baked blend weights (the
 caller bakes them first). Novel pose: a new pose every frame (F_a correction + LBS + rasterisation), the frames of the
 novel-pose split; novel view: one pose from changing cameras of the same split (the posed Gaussians are cached, so
@@ -19,8 +19,7 @@ from typing import Any
 import torch
 
 from framework.errors import SplatrigError
-from framework.lightning.trained_model import datamodule_for, load_module
-from framework.model.frame_timing import time_frames
+from framework.evaluation.frame_timing import time_frames
 from framework.types import FrameBatch
 
 TIMING_SPLITS = ("novel_pose", "novel_view")  # the first one the dataset has is timed
@@ -35,7 +34,7 @@ def distinct_frame_items(dataset, limit: int) -> list[int]:
     """Item indices of up to `limit` different frames, spread over the split (one view each)."""
     seen: dict[int, int] = {}
     for i in range(len(dataset)):
-        frame = dataset.sample(i)[0] if hasattr(dataset, "sample") else int(dataset[i].frame[0])
+        frame = dataset.sample(i)[0]
         seen.setdefault(frame, i)
     items = list(seen.values())
     step = max(1, len(items) // max(limit, 1))
@@ -80,38 +79,6 @@ def render_fps(module, dm, split: str, warmup: int = 3, repeats: int = 10) -> tu
     pose_fps = 1.0 / time_frames(new_pose, warmup, repeats, device)
     view_fps = 1.0 / time_frames(new_view, warmup, repeats, device)
     return pose_fps, view_fps
-
-
-def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
-                    rasterizer: str | None = None) -> dict[str, tuple[float, float]]:  # fmt: skip
-    """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
-    (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared 2-core
-    VM's speed drifts by 20-50 % over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour
-    later, at 52-67 ms), and timing the models one after the other would turn that drift into a difference between
-    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x).
-
-    `rasterizer`: render every model with this backend instead of the one it was trained with (`use_rasterizer`)."""
-    import statistics
-
-    loaded = {}
-    for name, path in ckpts.items():
-        module = load_module(path, map_location=device)
-        module.bake_weights()
-        if rasterizer is not None:
-            use_rasterizer(module, rasterizer)
-        dm = datamodule_for(module)
-        split = timing_split(dm)
-        if split is None:
-            raise SplatrigError(f"{path}: its data has none of the splits {TIMING_SPLITS} to time frames on.")
-        loaded[name] = (module, dm, split)
-    for module, dm, split in loaded.values():  # untimed: the first frames a process renders run slower
-        render_fps(module, dm, split, warmup=warmup, repeats=repeats)
-    times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
-    for _ in range(rounds):
-        for name, (module, dm, split) in loaded.items():
-            times[name].append(render_fps(module, dm, split, warmup=warmup, repeats=repeats))
-    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
-            for name, ts in times.items()}  # fmt: skip
 
 
 def use_rasterizer(module, name: str) -> None:

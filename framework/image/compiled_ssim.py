@@ -20,8 +20,8 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from framework.compiled_threads import run_chunked
 from framework.image.compiled_filter import filter_planes
-from framework.rig.compiled_threads import run_chunked
 from framework.runtime import cpu_float
 
 #: pixels (over an image plane's five moments) below which a chunk of planes is not worth a second thread

@@ -23,10 +23,22 @@ class BodyModel(nn.Module, ABC):
     """
 
     registry_name: str = ""
+    rest_vertices: Tensor  # [V, 3]
+    faces: Tensor  # [F, 3] long
+    skin_weights: Tensor  # [V, J]
+    parents: Tensor  # [J] long
+    rest_joints: Tensor  # [J, 3]
     joint_names: list[str]
     # Joints whose rotations are F_a's pose input, in order (None: every joint). A body with many small joints
     # (SMPL-X's fingers and eyes) narrows it so the corrector sees the pose that changes the clothing's appearance.
     pose_input_joints: list[int] | None = None
+
+    def __init__(self) -> None:
+        super().__init__()
+        # The optional buffers, declared here as None so every body has them (a body with texture coordinates
+        # registers them again with its tensors).
+        self.register_buffer("uvs", None)  # [Vt, 2]
+        self.register_buffer("face_uvs", None)  # [F, 3] long
 
     @property
     def num_joints(self) -> int:
@@ -48,6 +60,12 @@ class BodyModel(nn.Module, ABC):
         """Joints of the poses this body is driven with (the dataset's); more than `num_joints` when joints are
         folded away (`framework.model.frozen_body`)."""
         return self.num_joints
+
+    @property
+    def input_body(self) -> BodyModel:
+        """The body whose skeleton dataset poses and motion files are given for: this one, or the full body a body
+        with frozen joints folded (`framework.model.frozen_body`)."""
+        return self
 
     def input_pose(self, pose: Tensor) -> Tensor:
         """A dataset pose [B, num_input_joints, 3] -> this body's pose [B, J, 3] (the same pose for most bodies)."""

@@ -26,6 +26,16 @@ class Corrector(nn.Module, ABC):
     def bind(self, num_pose_features: int) -> None:  # noqa: B027 - optional hook
         """Called once the body's pose size is known, before training; build layers here if they depend on it."""
 
+    def corrected_rows(self) -> Tensor | None:
+        """[M] long: the Gaussians still corrected (empty: every one) by a corrector that can be restricted to a
+        subset, which compaction's partial fold needs; None: it cannot be."""
+        return None
+
+    def set_corrected_rows(self, rows: Tensor) -> None:
+        """Correct only the Gaussians `rows` [M] long (empty: every one); only called when `corrected_rows` is not
+        None."""
+        raise NotImplementedError(f"corrector '{self.registry_name}' cannot be restricted to some Gaussians")
+
     @abstractmethod
     def forward(self, gaussians: Gaussians, pose: Tensor) -> Gaussians:
         """gaussians: canonical; pose: [P] flattened pose features of the target frame."""

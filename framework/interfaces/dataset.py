@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -23,6 +25,10 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
     """
 
     registry_name: str = ""
+    #: The folder the data is read from (scene profiles are stored beside it), or None when it has none.
+    root: Path | None = None
+    #: The views (camera indices into `cameras`) this split uses.
+    views: Sequence[int] = ()
     cameras: Cameras
     frame_ids: list[int]
     num_frames_total: int
@@ -35,6 +41,23 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
     @abstractmethod
     def __getitem__(self, index: int) -> FrameBatch:
         """A FrameBatch with B = 1."""
+
+    def sample(self, index: int) -> tuple[int, int]:
+        """(frame, view) of item `index`; this default reads the item, a dataset that knows it without override it."""
+        batch = self[index]
+        return int(batch.frame[0]), int(batch.view[0]) if batch.view is not None else 0
+
+    def roots(self) -> Tensor | None:
+        """[num_frames_total, 4, 4] root transforms applied after the body model, or None when there are none."""
+        return None
+
+    def has_vertices(self) -> bool:
+        """Whether `vertices` can read the stored posed body vertices of a frame."""
+        return False
+
+    def vertices(self, frame: int) -> Tensor:
+        """[V, 3] the stored posed world vertices of `frame` (for checks, previews and the scene profile)."""
+        raise ValueError(f"dataset '{self.registry_name}' stores no body vertices")
 
     def poses(self) -> Tensor | None:
         """[num_frames_total, J, 3] stored poses of the whole sequence (None for static scenes)."""

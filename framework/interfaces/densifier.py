@@ -30,6 +30,9 @@ class Densifier(ABC):
     ) -> None:
         """Retain gradients the post-backward step needs."""
 
+    def restart_schedule(self, state: dict[str, Any], step: int) -> None:  # noqa: B027 - optional hook
+        """Stage 2 begins at `step`: a schedule that counts from the stage start (opacity resets) restarts here."""
+
     @abstractmethod
     def step_post_backward(
         self,

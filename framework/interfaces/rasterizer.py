@@ -60,6 +60,19 @@ class Rasterizer(ABC):
     #: (`framework.testing.conformance.extreme_tolerances`); everywhere else its checks are the same.
     conic_from_float32_covariance: bool = False
 
+    #: True for a backend that renders with compiled CPU kernels: an avatar then also takes its view colour (and a
+    #: deformer its skinning without gradients) from the compiled kernels where `compiled` or
+    #: `compiled_with_gradients` says the render of those tensors runs them.
+    compiled_inference: bool = False
+
+    def compiled(self, tensors: tuple[Tensor, ...]) -> bool:
+        """Whether a render of these tensors, without gradients, runs the compiled kernels."""
+        return False
+
+    def compiled_with_gradients(self, tensors: tuple[Tensor, ...]) -> bool:
+        """Whether a training render of these tensors runs its projection and compositing compiled."""
+        return False
+
     @abstractmethod
     def render(
         self,

@@ -89,7 +89,7 @@ class StageSwitch(Callback):
         avatar = pl_module.avatar
         changed = False
         for part in (avatar.corrector, avatar.deformer):
-            if hasattr(part, "enabled") and part.enabled != stage2:
+            if part.enabled != stage2:
                 part.enabled = stage2
                 changed = True
         if self.stage1_steps > 0 and trainer.global_step == self.stage1_steps:
@@ -102,8 +102,7 @@ class StageSwitch(Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         stage2 = trainer.global_step >= self.stage1_steps
         for part in (pl_module.avatar.corrector, pl_module.avatar.deformer):
-            if hasattr(part, "enabled"):
-                part.enabled = stage2
+            part.enabled = stage2
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self._apply(trainer, pl_module)

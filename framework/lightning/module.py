@@ -276,9 +276,7 @@ class SplatModule(L.LightningModule):
 
     def begin_stage2(self, step: int) -> None:
         """Stage 2 starts at `step`: the densifier's schedule (opacity resets) counts from here on."""
-        restart = getattr(self.densifier, "restart_schedule", None)
-        if restart is not None:
-            restart(self.densifier_state, step)
+        self.densifier.restart_schedule(self.densifier_state, step)
 
     # ----------------------------------------------------------------------------------------------- divergence
     def _checkpoint_due(self, step: int) -> bool:
@@ -347,13 +345,14 @@ class SplatModule(L.LightningModule):
     @torch.no_grad()
     def bake_weights(self) -> bool:
         """Store the deformer's final blend weights in each Gaussian, so inference needs no weight field or MLP."""
-        deformer = self.avatar.deformer
-        if not hasattr(deformer, "bake") or self.avatar.body is None:
+        if self.avatar.body is None:
             return False
         if "skin_weights" in self.avatar.gaussians.params:
             return True  # already baked (a compact model has no F_dw left to bake again)
-        weights = deformer.bake(self.avatar.gaussians.gaussians()).detach()
-        self.avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
+        weights = self.avatar.deformer.bake(self.avatar.gaussians.gaussians())
+        if weights is None:
+            return False
+        self.avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.detach().contiguous(), requires_grad=False)
         return True
 
     # -------------------------------------------------------------------------------------------- checkpointing
@@ -362,8 +361,8 @@ class SplatModule(L.LightningModule):
             k: (v.detach().cpu() if isinstance(v, Tensor) else v) for k, v in self.densifier_state.items()
         }
         checkpoint["splatrig_stage"] = {
-            "corrector_enabled": bool(getattr(self.avatar.corrector, "enabled", True)),
-            "deformer_enabled": bool(getattr(self.avatar.deformer, "enabled", True)),
+            "corrector_enabled": bool(self.avatar.corrector.enabled),
+            "deformer_enabled": bool(self.avatar.deformer.enabled),
         }
         checkpoint["splatrig_divergence"] = {"lr_scale": self.lr_scale, "rollbacks": self.rollbacks}
         checkpoint["splatrig_rng"] = rng_states()
@@ -385,7 +384,7 @@ class SplatModule(L.LightningModule):
         stage = checkpoint.get("splatrig_stage", {})
         if "corrector_enabled" in stage:
             self.avatar.corrector.enabled = stage["corrector_enabled"]
-        if "deformer_enabled" in stage and hasattr(self.avatar.deformer, "enabled"):
+        if "deformer_enabled" in stage:
             self.avatar.deformer.enabled = stage["deformer_enabled"]
 
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from framework.errors import SplatrigError
+from framework.evaluation.run_cost import TIMING_SPLITS, render_fps, timing_split, use_rasterizer
+
 
 def load_module(ckpt: str | Path, map_location: str | None = None):
     """The trained model of a checkpoint in eval mode, rebuilt from the config stored in it (errors name the file and
@@ -61,3 +64,35 @@ def datamodule_for(module):
         return build_component("dataset", cfg["data"], group="data", split=split)
 
     return FrameDataModule(build_split, val_split=cfg["eval"]["val_split"])
+
+
+def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
+                    rasterizer: str | None = None) -> dict[str, tuple[float, float]]:  # fmt: skip
+    """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
+    (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared 2-core
+    VM's speed drifts by 20-50 % over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour
+    later, at 52-67 ms), and timing the models one after the other would turn that drift into a difference between
+    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x).
+
+    `rasterizer`: render every model with this backend instead of the one it was trained with (`use_rasterizer`)."""
+    import statistics
+
+    loaded = {}
+    for name, path in ckpts.items():
+        module = load_module(path, map_location=device)
+        module.bake_weights()
+        if rasterizer is not None:
+            use_rasterizer(module, rasterizer)
+        dm = datamodule_for(module)
+        split = timing_split(dm)
+        if split is None:
+            raise SplatrigError(f"{path}: its data has none of the splits {TIMING_SPLITS} to time frames on.")
+        loaded[name] = (module, dm, split)
+    for module, dm, split in loaded.values():  # untimed: the first frames a process renders run slower
+        render_fps(module, dm, split, warmup=warmup, repeats=repeats)
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in loaded}
+    for _ in range(rounds):
+        for name, (module, dm, split) in loaded.items():
+            times[name].append(render_fps(module, dm, split, warmup=warmup, repeats=repeats))
+    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
+            for name, ts in times.items()}  # fmt: skip

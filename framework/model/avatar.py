@@ -166,8 +166,8 @@ class Avatar(nn.Module):
         self._rasterizer = backend
         self._posed_cache = None  # posed by the other skinning path (the same values, to rounding)
         deformer = self._modules.get("deformer")
-        if deformer is not None and hasattr(deformer, "compiled_inference"):
-            deformer.compiled_inference = bool(getattr(backend, "compiled_inference", False))
+        if deformer is not None:
+            deformer.compiled_inference = bool(backend.compiled_inference)
 
     def _pose_key(self, batch: FrameBatch) -> bytes:
         parts = [batch.frame[:1]]
@@ -254,7 +254,6 @@ class Avatar(nn.Module):
         """Whether the view colour takes the compiled loops: a backend with `compiled_inference` (numba) that renders
         these tensors compiled, without gradients (`compiled`) or with them (`compiled_with_gradients`: CPU float)."""
         backend, tensors = self._rasterizer, (sh, dirs, frames)
-        if not getattr(backend, "compiled_inference", False):
+        if not backend.compiled_inference:
             return False
-        with_gradients = getattr(backend, "compiled_with_gradients", None)  # a plugin's backend may not have it
-        return bool(backend.compiled(tensors) or (with_gradients is not None and with_gradients(tensors)))
+        return bool(backend.compiled(tensors) or backend.compiled_with_gradients(tensors))

@@ -7,8 +7,8 @@ switched-on corrector is exactly the identity and stage 2 starts from the stage-
 
 `active_rows` (empty: every Gaussian) restricts the MLP to the Gaussians whose correction still depends on the pose;
 the others carry their (constant) correction in their own parameters and get none here. It is set by a partial fold
-(`framework.model.corrector_fold`) of a compact model and saved with the weights, so a novel pose pays for the MLP on
-those rows only.
+(`framework.compaction.corrector_fold`) of a compact model and saved with the weights, so a novel pose pays for the
+MLP on those rows only.
 """
 
 from __future__ import annotations
@@ -84,6 +84,12 @@ class MLPCorrector(Corrector):
                                       error_msgs)  # fmt: skip
         if key in missing_keys[first:]:
             missing_keys.remove(key)
+
+    def corrected_rows(self) -> Tensor:
+        return self.active_rows
+
+    def set_corrected_rows(self, rows: Tensor) -> None:
+        self.active_rows = rows
 
     @property
     def num_sh_out(self) -> int:

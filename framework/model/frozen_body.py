@@ -66,9 +66,10 @@ class FrozenJointsBody(BodyModel):
         self.register_buffer("skin_weights", fold_weights(base.skin_weights, to_kept, len(kept)))  # [V, J']
         self.register_buffer("parents", torch.as_tensor(kept_parents, dtype=torch.long))  # [J']
         self.register_buffer("rest_joints", joints.contiguous())  # [J', 3]
-        for optional in ("uvs", "face_uvs"):
-            if getattr(base, optional, None) is not None:
-                self.register_buffer(optional, getattr(base, optional).clone())
+        if base.uvs is not None:
+            self.register_buffer("uvs", base.uvs.clone())
+        if base.face_uvs is not None:
+            self.register_buffer("face_uvs", base.face_uvs.clone())
         # not persistent: derived from the config and the data on every construction
         self.register_buffer("kept_indices", torch.as_tensor(kept, dtype=torch.long), persistent=False)  # [J']
         self.register_buffer("fold_index", torch.as_tensor(to_kept, dtype=torch.long), persistent=False)  # [J]
@@ -85,6 +86,10 @@ class FrozenJointsBody(BodyModel):
     def base_body(self) -> BodyModel:
         """The full skeleton whose poses `input_pose` takes (motion files are retargeted onto it)."""
         return self._base[0]
+
+    @property
+    def input_body(self) -> BodyModel:
+        return self.base_body
 
     def unfolded_skinning(self) -> tuple[Tensor, Tensor]:
         """The base body's weights on this body's (re-based) rest vertices, and each joint's kept joint."""

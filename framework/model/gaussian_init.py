@@ -137,11 +137,6 @@ def from_mesh_surface(
 
 def from_body_surface(body, num: int, sh_degree: int = 3, seed: int = 0, opacity: float = 0.1, **kwargs) -> Gaussians:
     """Gaussians on the rest surface of a `BodyModel` (its `rest_vertices` / `faces`); see `from_mesh_surface`."""
-    for attr in ("rest_vertices", "faces"):
-        if getattr(body, attr, None) is None:
-            raise ValueError(
-                f"gaussian init: body {type(body).__name__} has no `{attr}`; a body model must provide one."
-            )
     return from_mesh_surface(body.rest_vertices, body.faces, num, sh_degree, seed, opacity, **kwargs)
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.interfaces.body import BodyModel
 from framework.interfaces.deformer import Deformer, DeformOutput
 from framework.rig.fold import fold_weights
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
@@ -63,13 +64,13 @@ class LBSDeformerBase(Deformer):
         # then skinned by `framework.rig.compiled_skinning` (the same values in float64, cast back).
         self.compiled_inference = False
 
-    def bind(self, body: object | None, bounds: Tensor | None) -> None:
+    def bind(self, body: BodyModel | None, bounds: Tensor | None) -> None:
         if body is None or bounds is None:
             raise ValueError(
                 f"deformer '{self.registry_name}' needs a body model and a canonical box; for static scenes use "
                 "deformer=identity."
             )
-        unfolded = body.unfolded_skinning() if hasattr(body, "unfolded_skinning") else None
+        unfolded = body.unfolded_skinning()
         self.unfolded = None
         if unfolded is None:
             self.field = WeightField.from_body(body, bounds, self.grid_resolution, self.use_cache)
@@ -169,6 +170,13 @@ class LBSDeformerBase(Deformer):
         if self.field is not None and self.unfolded is None and self._weights_compiled(means):
             return self.smooth_weights(means.unsqueeze(-2).expand(-1, 7, -1))[0].detach().clone()
         return self.weights(means).detach().clone()
+
+    @torch.no_grad()
+    def rebuilds_weights(self, means: Tensor, weights: Tensor) -> bool:
+        """True when `weights` are the bound field's at `means` (no F_dw in them): binding the field rebuilds them."""
+        if self.field is None:
+            return False
+        return torch.allclose(self.weights(means), weights, rtol=0.0, atol=1e-6)  # the same lookup, to rounding
 
     def forward(self, gaussians: Gaussians, bone_transforms: Tensor | None, defer_sh: bool = False) -> DeformOutput:
         if bone_transforms is None:

@@ -49,7 +49,7 @@ class CompositeLoss(nn.Module):
     @property
     def aux_keys(self) -> frozenset[str]:
         """Deformer aux outputs the built terms read (a term with weight 0 is not built, so it asks for nothing)."""
-        return frozenset(k for term in self.terms.values() for k in getattr(term, "aux_keys", ()))
+        return frozenset(k for term in self.terms.values() for k in term.aux_keys)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CompositeLoss:

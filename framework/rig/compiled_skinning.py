@@ -41,8 +41,8 @@ import numpy as np
 import torch
 from numba import njit
 
+from framework.compiled_threads import run_chunked
 from framework.guards import LBS_MIN_STRETCH, NORM_EPS, POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
-from framework.rig.compiled_threads import run_chunked
 
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = 1e-13  # float64, as framework.rig.polar

@@ -159,9 +159,6 @@ class WeightField(nn.Module):
 
     @classmethod
     def from_body(cls, body, bounds, resolution: int = 64, use_cache: bool = True) -> WeightField:
-        for attr in ("rest_vertices", "faces", "skin_weights"):
-            if getattr(body, attr, None) is None:
-                raise ValueError(f"weight field: body {type(body).__name__} has no `{attr}`; LBS needs one.")
         vol = build_weight_grid(body.rest_vertices, body.faces, body.skin_weights, bounds, resolution, use_cache)
         return cls(vol, torch.as_tensor(_np(bounds), dtype=torch.float32))
 

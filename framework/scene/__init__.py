@@ -1,2 +1,2 @@
-"""Scene-adaptive capacity: measure what a capture needs (profile), turn it into config choices (auto), and compact a
-trained model (pruning). Imports lightning/, model/, data/, interfaces/, rig/, splat/ and core; entry points use it."""
+"""Scene-adaptive capacity: measure what a capture needs (profile) and turn it into config choices (auto); compacting
+a trained model lives in `framework.compaction`. Imports lightning/ and below; entry points use it."""

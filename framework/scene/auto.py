@@ -8,7 +8,7 @@ Rules (thresholds in `conf/scene/auto.yaml`, under `scene.thresholds`):
   cloth, 3 only for strongly view-dependent appearance), at least `min_sh_degree` (`gaussians.sh_degree`).
 - corrector F_a: switched off (`corrector=none`) when the pose-dependent colour spread is below
   `corrector_pose_dependence` (set at the noise floor: F_a measured worth keeping in training even for a near-static
-  capture; pruning folds a corrector whose output hardly varies, `framework.model.corrector_fold`).
+  capture; pruning folds a corrector whose output hardly varies, `framework.compaction.corrector_fold`).
 - F_a at compaction: kept whole (`scene.fold_corrector=false`, read by `framework.prune`'s `fold_tolerance=auto`)
   when the pose-dependent colour spread reaches `corrector_fold_pose_dependence`. Folding checks the training poses
   it averages over; where appearance follows the pose, novel poses need F_a's per-pose output (a partial fold cost

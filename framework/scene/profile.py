@@ -258,8 +258,8 @@ def profile_key(dataset, max_frames: int, blur_px: float, moving_deg: float) -> 
     """Identifies a profile: the data (root, training views and frames, resolution) and the measurement settings."""
     ident = {
         "version": PROFILE_VERSION,
-        "root": str(Path(getattr(dataset, "root", "")).resolve()),
-        "views": [int(v) for v in getattr(dataset, "views", [])],
+        "root": str(Path(dataset.root if dataset.root is not None else "").resolve()),
+        "views": [int(v) for v in dataset.views],
         "frames": [int(f) for f in dataset.frame_ids],
         "size": [int(dataset.cameras.width), int(dataset.cameras.height)],
         "settings": [int(max_frames), float(blur_px), float(moving_deg)],
@@ -269,7 +269,7 @@ def profile_key(dataset, max_frames: int, blur_px: float, moving_deg: float) -> 
 
 def profile_path(dataset, key: str) -> Path:
     """`<dataset root>/scene_profile-<key>.yaml` beside the data, or under the project cache if that is read-only."""
-    root = getattr(dataset, "root", None)
+    root = dataset.root
     if root is not None and os.access(root, os.W_OK):
         return Path(root) / f"scene_profile-{key}.yaml"
     from framework.paths import cache_dir
@@ -279,8 +279,8 @@ def profile_path(dataset, key: str) -> Path:
 
 
 def _check_profilable(dataset, body) -> None:
-    what = getattr(dataset, "registry_name", type(dataset).__name__)
-    if dataset.poses() is None or not hasattr(dataset, "vertices") or not hasattr(dataset, "sample"):
+    what = dataset.registry_name or type(dataset).__name__
+    if dataset.poses() is None:
         raise ProfileError(
             f"data={what}: the scene profile needs a body dataset with per-frame poses and posed vertices "
             f"(e.g. data=synthetic_studio or data=zju_mocap); this dataset has none. Profile a body capture instead."
@@ -297,7 +297,8 @@ def _check_profilable(dataset, body) -> None:
         found = None if body is None else body.rest_vertices.shape[0]
         raise ProfileError(
             f"data={what}: the stored vertices and poses have {verts.shape[0]} points and {joints} joints but body "
-            f"'{getattr(body, 'registry_name', None)}' has {found} and {getattr(body, 'num_joints', None)}; select "
+            f"'{None if body is None else body.registry_name}' has {found} and "
+            f"{None if body is None else body.num_joints}; select "
             f"the body (and skeleton) the data was made with "
             f"(the dataset says '{dataset.body_name}'), e.g. body={dataset.body_name}."
         )
@@ -314,7 +315,7 @@ def profile_dataset(dataset, body, max_frames: int = 12, blur_px: float = 1.0, m
     poses = dataset.poses()  # [F_total, J, 3]
     ranges = joint_rotation_ranges(poses[frames])
     names = list(body.joint_names)
-    roots = dataset.roots() if hasattr(dataset, "roots") else None
+    roots = dataset.roots()
     take = max(1, min(int(max_frames), len(frames)))
     sampled = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, take).round().astype(int)]
     sampled = list(dict.fromkeys(sampled))
@@ -348,7 +349,7 @@ def profile_dataset(dataset, body, max_frames: int = 12, blur_px: float = 1.0, m
     sil = float(np.mean(list(per_view.values())))
     return SceneProfile(
         key=profile_key(dataset, max_frames, blur_px, moving_deg),
-        dataset=str(getattr(dataset, "root", "")),
+        dataset=str(dataset.root or ""),
         body=str(dataset.body_name),
         width=W,
         height=H,

@@ -69,9 +69,9 @@ class ViewerApp:
             self.rotation = [gui.add_slider(f"rotate {a} (deg)", -180, 180, 1, 0) for a in POSE_AXES]
             self.reset = gui.add_button("reset pose")
         with gui.add_folder("Model"):
-            on = bool(getattr(s.avatar.corrector, "enabled", True))
+            on = bool(s.avatar.corrector.enabled)
             self.corrector = gui.add_checkbox("appearance corrector (F_a)", on, disabled=not s.has_corrector)
-            on = bool(getattr(s.avatar.deformer, "enabled", True))
+            on = bool(s.avatar.deformer.enabled)
             self.residual = gui.add_checkbox("weight residual (F_dw)", on, disabled=not s.has_residual)
             backends = sorted(set(s.available_backends()) | {s.backend})
             self.backend = gui.add_dropdown("rasterizer", backends, initial_value=s.backend)

@@ -79,7 +79,7 @@ class ViewerSession:
 
     @property
     def has_corrector(self) -> bool:
-        return self.avatar.body is not None and getattr(self.avatar.corrector, "registry_name", "none") != "none"
+        return self.avatar.body is not None and self.avatar.corrector.registry_name != "none"
 
     @property
     def has_residual(self) -> bool:
@@ -90,22 +90,21 @@ class ViewerSession:
         return [e.name for e in RASTERIZERS if e.unavailable_reason() is None]
 
     def _prepare_weights(self) -> None:
-        """Bake the final blend weights (the real-time path) and, for `lbs_residual`, the grid-only weights too, so
-        the F_dw switch swaps one tensor instead of evaluating the residual MLP every frame."""
+        """Bake the final blend weights (the real-time path) and, where the deformer's stage-2 part (F_dw) changes
+        them, the weights without it too, so the F_dw switch swaps one tensor instead of evaluating it every frame."""
         self._full_weights = self._grid_weights = None
         deformer = self.avatar.deformer
-        if self.avatar.body is None or not hasattr(deformer, "bake"):
-            return
         params = self.avatar.gaussians.params
-        if "skin_weights" not in params:
-            self.module.bake_weights()
+        if "skin_weights" not in params and not self.module.bake_weights():
+            return  # no body, or a deformer with nothing to bake
         self._full_weights = params["skin_weights"].data.clone()
-        if hasattr(deformer, "enabled") and hasattr(deformer, "mlp"):
-            was = deformer.enabled
-            deformer.enabled = False
-            with torch.no_grad():
-                self._grid_weights = deformer.weights(params["means"]).detach().clone()
-            deformer.enabled = was
+        was = deformer.enabled
+        deformer.enabled = False
+        canonical = self.avatar.gaussians.gaussians().replace(skin_weights=None)
+        grid = deformer.bake(canonical)
+        deformer.enabled = was
+        if grid is not None and not torch.equal(grid, self._full_weights):
+            self._grid_weights = grid.detach().clone()
 
     def _changed(self) -> None:
         # the avatar caches the posed Gaussians of the last pose; leaving training mode again clears that cache

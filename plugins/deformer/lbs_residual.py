@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from framework.interfaces.body import BodyModel
 from framework.model.lbs_deformer import LBSDeformerBase
 from framework.model.posenc import normalize_to_bounds, posenc, posenc_dim
 from framework.registry import register
@@ -41,7 +42,7 @@ class LBSResidualDeformer(LBSDeformerBase):
         self.combine = residual
         self.mlp: nn.Sequential | None = None
 
-    def bind(self, body: object | None, bounds: Tensor | None) -> None:
+    def bind(self, body: BodyModel | None, bounds: Tensor | None) -> None:
         super().bind(body, bounds)
         dims = [posenc_dim(self.num_freqs)] + [self.hidden] * (self.num_layers - 1)
         mods: list[nn.Module] = []
@@ -57,6 +58,16 @@ class LBSResidualDeformer(LBSDeformerBase):
     @property
     def refines(self) -> bool:
         return self.enabled and self.mlp is not None
+
+    def release_after_bake(self) -> str | None:
+        """F_dw is unused once the weights are baked: its parameters leave the checkpoint, which loads as `lbs`."""
+        if self.mlp is None:
+            return None
+        self.mlp = None
+        return "lbs"
+
+    def rebuilds_weights(self, means: Tensor, weights: Tensor) -> bool:
+        return self.mlp is None and super().rebuilds_weights(means, weights)
 
     def residual(self, points: Tensor) -> tuple[str, Tensor | None]:
         if not self.refines:

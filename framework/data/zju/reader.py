@@ -22,6 +22,7 @@ from framework.data.zju.layout import (
     read_image,
     read_mask_file,
 )
+from framework.interfaces import BodyModel, MultiViewDataset
 
 ROTATION_TOL = 1e-3  # |R R^T - I| and |det R - 1| a calibration rotation may be off by (float32 exports, rounding)
 
@@ -265,28 +266,27 @@ class ZjuSequence:
 
 
 # ----------------------------------------------------------------------------------------------------------- checks
-def check_body_compatible(dataset: object, body: object) -> None:
+def check_body_compatible(dataset: MultiViewDataset, body: BodyModel) -> None:
     """Stop before training when the stored poses cannot drive `body` (different joint count).
 
-    `dataset` has `poses()` [F, J, 3] (any MultiViewDataset) and optionally `root`/`body_name`; `body` has
-    `num_joints` (a BodyModel). The message names the params file, the body and the fix.
+    The message names the params file (of a ZJU-layout sequence, else the dataset's root), the body and the fix.
     """
-    poses = dataset.poses() if hasattr(dataset, "poses") else None
+    poses = dataset.poses()
     if poses is None:
         return
     J_data = int(poses.shape[1])
     J_body = int(body.num_joints)
     if J_data == J_body:
         return
-    where = getattr(dataset, "root", "the dataset")
-    seq = getattr(dataset, "seq", None)
-    if seq is not None and getattr(dataset, "frame_ids", None):
+    where = dataset.root or "the dataset"
+    seq = getattr(dataset, "seq", None)  # a ZJU-layout sequence names the params file of its first frame
+    if seq is not None and dataset.frame_ids:
         try:
             where = seq.params_path(dataset.frame_ids[0])
         except FileNotFoundError:
             pass
-    body_name = getattr(body, "registry_name", "") or type(body).__name__
-    stored = getattr(dataset, "body_name", None)
+    body_name = body.registry_name or type(body).__name__
+    stored = dataset.body_name
     raise ZjuFormatError(
         f"{where}: stored poses have {J_data} joints ({J_data * 3} values per frame) but body model '{body_name}' has "
         f"{J_body} joints. The poses were made for body '{stored}'; select that body (body={stored}) or convert the "

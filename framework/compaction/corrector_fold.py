@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from framework.compaction.pruning import contributions
+from framework.compaction.render_check import RenderCheck, largest_passing
 from framework.geometry import quat_normalize
 from framework.model.avatar import Avatar
-from framework.model.render_check import RenderCheck, largest_passing
 from framework.splat.sh import SH_C0
 from framework.types import FrameBatch, Gaussians
 
@@ -134,14 +135,13 @@ def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int
         return CorrectorFold(spread, rms, float(tolerance), True, n, n)
     avatar.corrector = corrector  # not close enough: put everything back, then try a part
     _restore(p, kept)
-    if partial and hasattr(corrector, "active_rows") and not corrector.active_rows.numel() and n > 1:
-        from framework.model.pruning import contributions
-
+    rows = corrector.corrected_rows()
+    if partial and rows is not None and not rows.numel() and n > 1:
         order = torch.argsort(variation * contributions(avatar, batches).max)  # least needed first
 
         def fold_first(k: int) -> float:  # k < n: an empty active_rows would mean "every row"
             _write_mean(p, mean, kept, order[:k])
-            corrector.active_rows = torch.sort(order[k:]).values
+            corrector.set_corrected_rows(torch.sort(order[k:]).values)
             return check.rms(avatar)
 
         step = max(1, n // PARTIAL_FOLD_STEPS)
@@ -149,7 +149,7 @@ def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int
         if k >= MIN_PARTIAL_FRACTION * n:
             return CorrectorFold(spread, fold_first(k), float(tolerance), False, k, n)
         _restore(p, kept)
-        corrector.active_rows = corrector.active_rows.new_zeros(0)
+        corrector.set_corrected_rows(rows.new_zeros(0))
     avatar._posed_cache = None
     return CorrectorFold(spread, rms, float(tolerance), False, 0, n)
 

@@ -7,7 +7,7 @@ one whose largest weight over every training view and pose stays below a thresho
 outside the training step (`torch_ref` has one; other backends fall back to it).
 
 Beyond the threshold, `prune_within_tolerance` removes Gaussians in the order of a score while the training frames
-still render within a tolerance of the unpruned model (`framework.model.render_check`): densification leaves many
+still render within a tolerance of the unpruned model (`framework.compaction.render_check`): densification leaves many
 small, faint Gaussians whose sum matters little, and the images, not a fixed weight, decide how many. The score
 compaction uses is the mean squared blending weight over the pixels a Gaussian covers (`BlendWeights.mean_square`):
 removing it changes each of those pixels by about its weight times a colour difference, so the sum of squares is the
@@ -30,11 +30,12 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from framework.compaction.render_check import RenderCheck, largest_passing
 from framework.guards import HIDDEN_OPACITY_LOGIT
+from framework.interfaces.corrector import Corrector
 from framework.interfaces.rasterizer import Rasterizer
 from framework.model.avatar import Avatar, GaussianParams
 from framework.model.optim_surgery import keep_rows, update_params
-from framework.model.render_check import RenderCheck, largest_passing
 from framework.splat.sh import sh_degree_of_bases
 from framework.types import BlendWeights, FrameBatch
 
@@ -70,16 +71,16 @@ def contributions(avatar: Avatar, batches: Iterable[FrameBatch], rasterizer: Ras
     return total
 
 
-def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: torch.nn.Module | None = None) -> int:
+def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: Corrector | None = None) -> int:
     """Keep the Gaussians selected by the bool mask `keep` [N]; returns how many were removed. A partially folded
     `corrector`'s rows (`MLPCorrector.active_rows`) are renumbered to the kept Gaussians."""
     before = params.num
     keep_rows(params.params, None, keep)
-    rows = getattr(corrector, "active_rows", None)
+    rows = None if corrector is None else corrector.corrected_rows()
     if rows is not None and rows.numel():
         new_index = torch.cumsum(keep.long(), 0) - 1  # [N] row of each kept Gaussian after the removal
-        corrector.active_rows = new_index[rows[keep[rows]]]
-        if not corrector.active_rows.numel():  # every corrected Gaussian went: nothing is pose-dependent any more
+        corrector.set_corrected_rows(new_index[rows[keep[rows]]])
+        if not corrector.corrected_rows().numel():  # every corrected Gaussian went: nothing is pose-dependent any more
             raise ValueError("pruning removed every Gaussian the partially folded corrector corrects; fold it whole.")
     return before - params.num
 

@@ -1,11 +1,11 @@
-"""Compact a trained avatar for inference: learned pruning (`framework.model.pruning`), F_dw baked into per-Gaussian
-weights, training-only state dropped; with a before/after report (Gaussians, size, render speed, PSNR).
+"""Compact a trained avatar for inference: learned pruning (`framework.compaction.pruning`), F_dw baked into
+per-Gaussian weights, training-only state dropped; with a before/after report (Gaussians, size, render speed, PSNR).
 
 `prune_checkpoint(ckpt, out)` writes a checkpoint every entry point loads as usual (evaluate, render,
 tools/bench_render.py): the config stored in it is updated to what the compact model is (SH degree, `deformer=lbs`
 once F_dw is baked), and the optimizer state, which only resuming needs, is left out.
 
-Measurements, as tools/bench_render.py takes them (`framework.model.frame_timing`): novel-pose fps renders a new
+Measurements, as tools/bench_render.py takes them (`framework.evaluation.frame_timing`): novel-pose fps renders a new
 pose every frame (F_a, LBS with baked weights, rasterisation) from the novel-pose split's frames and cameras; novel-view
 fps renders one pose from changing cameras (posed Gaussians cached). PSNR is over whole images of each split.
 """
@@ -19,11 +19,8 @@ from typing import Any
 import torch
 
 from framework.atomic import atomic_path
-from framework.errors import SplatrigError
-from framework.evaluation.run_cost import distinct_frame_items, interleaved_fps, model_bytes, render_fps, timing_split
-from framework.lightning.trained_model import datamodule_for, load_module
-from framework.model.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
-from framework.model.pruning import (
+from framework.compaction.corrector_fold import DEFAULT_FOLD_TOLERANCE, CorrectorFold, fold_corrector, fold_outcome
+from framework.compaction.pruning import (
     DEFAULT_MIN_WEIGHT,
     DEFAULT_SH_TOLERANCE,
     contributions,
@@ -33,13 +30,18 @@ from framework.model.pruning import (
     prune_within_tolerance,
     sh_band_rms,
 )
-from framework.model.refit import RefitResult, refit_gaussians
-from framework.model.render_check import RenderCheck
+from framework.compaction.refit import RefitResult, refit_gaussians
+from framework.compaction.render_check import RenderCheck
+from framework.errors import SplatrigError
+from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps, timing_split
+from framework.lightning.data import collate_frames
+from framework.lightning.trained_model import datamodule_for, interleaved_fps, load_module
 from framework.runtime import default_device
+from framework.scene.auto import group_option
 
 CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
 DEFAULT_REFIT_STEPS = 1500
-"""Steps of the refit after pruning (`framework.model.refit`): 90-115 s on 2 CPU cores at the CPU profile's 128 px.
+"""Steps of the refit after pruning (`framework.compaction.refit`): 90-115 s on 2 CPU cores at the CPU profile's 128 px.
 After the CPU profile's 4000 steps, 1500 steps against 300 gained 0.05-0.14 dB on three walking seeds (all three then
 within 0.3 dB of paper_full) and 0.05-0.10 dB on two glossy ones, and moved two near-static models by -0.04 to
 +0.05 dB (docs/results/scene_adaptive.md, "The refit's default"). `conf/prune.yaml` and `conf/export.yaml` repeat it."""
@@ -194,7 +196,6 @@ def _num(x: float | None, digits: int = 1) -> str:
 def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_pose"), warmup: int = 3,
                    repeats: int = 10, file_bytes: int | None = None) -> ModelMeasure:  # fmt: skip
     """Gaussian count, learned size, novel-pose / novel-view fps (bench_render's rules) and PSNR per split."""
-    from framework.lightning.data import collate_frames
     from framework.plugins import load_plugins
     from framework.registry import METRICS
 
@@ -233,22 +234,18 @@ def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_p
 
 # ------------------------------------------------------------------------------------------------- compacting
 def bake_weight_residual(module) -> bool:
-    """Store the final blend weights per Gaussian and drop F_dw (the stored config becomes `deformer=lbs`)."""
-    from framework.scene.auto import group_option
-
+    """Store the final blend weights per Gaussian and drop what only computed them (`Deformer.release_after_bake`:
+    F_dw, and the stored config becomes `deformer=lbs`)."""
     if not module.bake_weights():
         return False
-    deformer = module.avatar.deformer
-    if getattr(deformer, "mlp", None) is not None:
-        deformer.mlp = None  # unused once weights are baked; its parameters leave the checkpoint
-        module.cfg["deformer"] = group_option("deformer", "lbs", module.cfg["deformer"])
+    replacement = module.avatar.deformer.release_after_bake()
+    if replacement is not None:
+        module.cfg["deformer"] = group_option("deformer", replacement, module.cfg["deformer"])
     return True
 
 
 def check_batches(module, dm, max_frames: int = CHECK_FRAMES) -> list:
     """The training frames (one view each, spread over the split) that image-checked compaction steps render."""
-    from framework.lightning.data import collate_frames
-
     dataset = dm.train_set
     return [collate_frames([dataset[i]]).to(module.device) for i in distinct_frame_items(dataset, max_frames)]
 
@@ -263,8 +260,6 @@ def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE,
     """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
     corrector_fold`; with `partial`, as much of it as they allow); the stored config becomes `corrector=none` when
     all of it went. None when there is no pose-driven corrector."""
-    from framework.scene.auto import group_option
-
     avatar = module.avatar
     if not has_pose_corrector(avatar):
         return None
@@ -282,12 +277,10 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
                  tolerance: float | None = None) -> tuple[int, int, list[float]]:  # fmt: skip
     """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses; with a
     `check` and `tolerance`, then others, the smallest mean squared blending weight per covered pixel first
-    (`framework.model.pruning`), while the checked frames stay within it; then the SH bands whose RMS colour change
+    (`framework.compaction.pruning`), while the checked frames stay within it; then the SH bands whose RMS colour change
     is below `sh_tolerance`. Returns (Gaussians removed, of them within the tolerance, band RMS)."""
-    from framework.lightning.data import collate_frames
-
     dataset = dm.train_set
-    frames = sorted({dataset.sample(i)[0] for i in range(len(dataset))}) if hasattr(dataset, "sample") else None
+    frames = sorted({dataset.sample(i)[0] for i in range(len(dataset))})
     if max_frames and frames and len(frames) > max_frames:
         keep = {frames[int(round(k))] for k in torch.linspace(0, len(frames) - 1, max_frames).tolist()}
     else:
@@ -323,17 +316,10 @@ def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_toleranc
 def rebuildable_skin_weights(module) -> bool:
     """True when the stored blend weights are the body's weight field at the canonical means (no F_dw residual in
     them), so a loaded model rebuilds them exactly (`deformer=lbs` binds the field; `bake_weights` samples it)."""
-    avatar = module.avatar
-    params = avatar.gaussians.params
-    weights = params["skin_weights"] if "skin_weights" in params else None
-    deformer = avatar.deformer
-    if weights is None or getattr(deformer, "mlp", None) is not None or not hasattr(deformer, "weights"):
+    params = module.avatar.gaussians.params
+    if "skin_weights" not in params:
         return False
-    if getattr(deformer, "field", None) is None:
-        return False
-    with torch.no_grad():
-        field = deformer.weights(params["means"])
-    return torch.allclose(field, weights.detach(), rtol=0.0, atol=1e-6)  # the same lookup: equal to float rounding
+    return module.avatar.deformer.rebuilds_weights(params["means"].detach(), params["skin_weights"].detach())
 
 
 def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path, skin_weights: bool = True) -> None:
@@ -365,7 +351,7 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
                      prune_rounds: int = 1, timing_rasterizer: str | None = None) -> PruneReport:  # fmt: skip
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers; frame rates: both
-    files timed interleaved, `rounds` rounds of `repeats` frames, `framework.evaluation.run_cost.interleaved_fps`).
+    files timed interleaved, `rounds` rounds of `repeats` frames, `framework.lightning.trained_model.interleaved_fps`).
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it (`"auto"`: 1/255, or no
@@ -375,8 +361,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     `resolve_prune_tolerance`); negligible SH bands dropped; then, if F_a was kept, folded for as many Gaussians as
     keep the frames within `fold_tolerance` (of the original renders; with a refit, of the pruned model's, since the
     refit repairs both steps); then, with `refit_steps`, the remaining Gaussians refitted to the training images
-    (`framework.model.refit`; blend weights that are the body's field at the means follow the means, as in training,
-    and are baked again after).
+    (`framework.compaction.refit`; blend weights that are the body's field at the means follow the means, as in
+    training, and are baked again after).
     With `prune_rounds` > 1 and a refit, pruning and the refit then repeat: each later round prunes within the same
     tolerances of the refitted model's renders and refits `refit_steps` steps again, so the refits take
     `prune_rounds * refit_steps` steps in all.
@@ -437,8 +423,8 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
 
 
 def refit_module(module, dm, steps: int) -> RefitResult:
-    """Refit the Gaussians (`framework.model.refit`); blend weights that are the body's field at the means follow the
-    means during the refit, as in training, and are baked again after."""
+    """Refit the Gaussians (`framework.compaction.refit`); blend weights that are the body's field at the means follow
+    the means during the refit, as in training, and are baked again after."""
     if rebuildable_skin_weights(module):
         del module.avatar.gaussians.params["skin_weights"]
     result = refit_gaussians(module, dm, steps)

@@ -9,7 +9,7 @@ What moves: the Gaussians' own parameters (means, rotations, scales, opacities, 
 schedule ends with (`SplatModule._set_learning_rates` at its last step). What stays as trained: the networks (a kept
 F_a, a partially folded F_a's rows), latent codes, the pose refiner and the skeleton; nothing densifies, and the SH
 degree is the model's. Blend weights are whatever the avatar uses: stored ones stay fixed, and a caller that removes
-rebuildable weights first (`framework.scene.compact`) has them follow the means, as in training.
+rebuildable weights first (`framework.compaction.compact`) has them follow the means, as in training.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import torch
 from tqdm.auto import tqdm
+
+from framework.lightning.data import collate_frames
 
 REFIT_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 """The Gaussian parameters a refit optimises (not latents, which feed a kept F_a, nor baked blend weights)."""
@@ -38,8 +40,6 @@ def refit_gaussians(module, datamodule, steps: int, seed: int = 0, progress: boo
     """Optimise the Gaussians of `module` (a `SplatModule`) for `steps` steps of its own loss on shuffled training
     frames (one image per step, as training); the module is left in eval mode. A non-finite loss restores the
     parameters the refit started from and stops it (`RefitResult.stopped`)."""
-    from framework.lightning.data import collate_frames
-
     if steps <= 0:
         return RefitResult(0, 0.0, math.nan, math.nan)
     params = module.avatar.gaussians.params

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from framework.model.frame_timing import synchronize
+from framework.evaluation.frame_timing import synchronize
 
 
 def gemm_rate(repeats: int, device: torch.device | str, size: int = 2048) -> list[float]:
