@@ -323,7 +323,7 @@ def test_a_motion_file_drives_a_body_with_frozen_joints_through_its_full_skeleto
     base = BODIES.build("procedural")
     frozen = FrozenJointsBody(base, ["foot.L", "foot.R", "head"])
     path = write_bvh(tmp_path / "raise.bvh", [{}, {"LeftArm": (80.0, 0.0, 0.0)}], 0.5)
-    dm = SimpleNamespace(train_set=SimpleNamespace())
+    dm = SimpleNamespace(train_set=SimpleNamespace(roots=lambda: None))  # a dataset without root transforms
     motion, frames = load_motion(SimpleNamespace(avatar=SimpleNamespace(body=frozen)), dm, str(path))
     want, _ = load_motion(SimpleNamespace(avatar=SimpleNamespace(body=base)), dm, str(path))
     assert motion.poses.shape == (2, base.num_joints, 3) and frames == [-1, -1]
