@@ -18,6 +18,7 @@ from framework.data.boundary import scaled_half_width
 from framework.model.losses import CompositeLoss
 from framework.plugins import load_plugins
 from framework.types import Cameras, FrameBatch, RenderOutput
+from tests.helpers.config_keys import flat
 
 load_plugins()
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,16 +32,6 @@ def composed(*overrides: str) -> dict:
     data["paths"]["output_dir"] = "unused"
     job = OmegaConf.create(data)
     return OmegaConf.to_container(job, resolve=True)  # type: ignore[return-value]
-
-
-def flat(node: dict, prefix: str = "") -> dict[str, object]:
-    out: dict[str, object] = {}
-    for key, value in node.items():
-        if isinstance(value, dict):
-            out.update(flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def changed_keys(experiment: str, *overrides: str) -> dict[str, tuple[object, object]]:

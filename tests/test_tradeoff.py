@@ -22,6 +22,7 @@ from framework.report import main as report_main
 from framework.reporting.pareto import pareto_front
 from framework.reporting.runs import ReportError, find_runs
 from framework.reporting.tradeoff import build_points, knob_gains, parse_budget, recommend
+from tests.helpers.config_keys import flat
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -166,16 +167,6 @@ def test_budget_flag_belongs_to_the_tradeoff_report(sweep: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ the sweep
-def _flat(node, prefix: str = "") -> dict[str, object]:
-    out: dict[str, object] = {}
-    for key, value in node.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 #: every milestone of the schedule (each a fraction of the run's length, conf/profile/*.yaml), and the length
 SCHEDULE = {"trainer.max_steps", "trainer.val_every", "stages.stage1_steps", "gaussians.sh_increase_every",
             "densifier.refine_start", "densifier.refine_stop", "densifier.refine_every", "densifier.first_reset",
@@ -228,7 +219,7 @@ def test_each_point_changes_exactly_its_knob(point: str, profile: str) -> None:
     for key in set(cfg) - {"paths"}:  # every interpolation resolves (paths need a running Hydra job)
         if OmegaConf.is_config(cfg[key]):
             OmegaConf.to_container(cfg[key], resolve=True)
-    a, b = _flat(OmegaConf.to_container(base)), _flat(OmegaConf.to_container(cfg))
+    a, b = flat(OmegaConf.to_container(base)), flat(OmegaConf.to_container(cfg))
     changed = {k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>")} - {"task_name"}
     allowed = KNOBS[point]
 

@@ -69,10 +69,9 @@ def datamodule_for(module):
 def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
                     rasterizer: str | None = None) -> dict[str, tuple[float, float]]:  # fmt: skip
     """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
-    (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared 2-core
-    VM's speed drifts by 20-50 % over minutes (measured: the same model's novel-pose frame at 38 ms and, an hour
-    later, at 52-67 ms), and timing the models one after the other would turn that drift into a difference between
-    them (a compaction's own before/after timing read 1.34x where interleaved rounds read 1.20-1.30x).
+    (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared
+    machine's speed drifts over minutes, and timing the models one after the other would turn that drift into a
+    difference between them.
 
     `rasterizer`: render every model with this backend instead of the one it was trained with (`use_rasterizer`)."""
     import statistics
