@@ -184,7 +184,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
             save_top_k=1,
             enable_version_counter=False,
         ),  # fmt: skip
-        StageSwitch(int(cfg.stages.stage1_steps)),
+        stage_switch := StageSwitch(int(cfg.stages.stage1_steps)),
         ImageGridLogger(int(cfg.callbacks.image_every), int(cfg.callbacks.image_views)),
     ]
     if cfg.callbacks.progress_bar:
@@ -242,7 +242,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
         train_cpu_seconds=round(train_cpu_seconds, 2),
         run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
-        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"], **cost,
+        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"],
+        stage_seconds=stage_switch.stage_seconds(), **cost,
         metrics=metrics_from_summary(result),
     )  # fmt: skip
     print(f"\n[splatrig] results: {out_dir}")

@@ -16,6 +16,8 @@ written before the cost fields existed lack them; readers treat a missing field 
     num_gaussians   Gaussians at the end of training
     peak_rss_mib    peak resident memory of the fit loop (MiB); cuda_peak_mib: peak allocated CUDA memory or null
     seconds_per_step  train_seconds / steps
+    stage_seconds   {"stage1"|"stage2": {"steps", "seconds", "steps_per_second"}}: each stage's share of this fit
+                    (validation included; on CUDA the clock is read after a synchronise at each boundary)
     render_fps      {"novel_pose": fps, "novel_view": fps, "split", "frames", "warmup", "device"}: render speed of the
                     final model as tools/bench_render.py measures it (framework.evaluation.run_cost); fps are null
                     when skipped (eval.fps_frames=0) or not applicable (no body: no novel-pose fps)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback
@@ -83,6 +85,24 @@ class StageSwitch(Callback):
 
     def __init__(self, stage1_steps: int = 0) -> None:
         self.stage1_steps = stage1_steps
+        self._clock: list[tuple[int, float]] = []  # (global step, wall seconds) at the start, the switch and the end
+
+    def _mark(self, trainer) -> None:
+        """Wall clock at a stage boundary, after the device has finished what was queued (once per boundary)."""
+        if torch.cuda.is_available() and trainer.strategy.root_device.type == "cuda":
+            torch.cuda.synchronize()
+        self._clock.append((int(trainer.global_step), time.perf_counter()))
+
+    def stage_seconds(self) -> dict[str, dict[str, float]]:
+        """{"stage1"|"stage2": {"steps", "seconds", "steps_per_second"}} of this fit (validation included)."""
+        out = {}
+        marks = self._clock
+        for (step0, t0), (step1, t1) in zip(marks, marks[1:], strict=False):
+            if step1 > step0:
+                name = "stage2" if step0 >= self.stage1_steps else "stage1"
+                out[name] = {"steps": step1 - step0, "seconds": round(t1 - t0, 2),
+                             "steps_per_second": round((step1 - step0) / max(t1 - t0, 1e-9), 2)}  # fmt: skip
+        return out
 
     def _apply(self, trainer, pl_module) -> None:
         stage2 = trainer.global_step >= self.stage1_steps
@@ -103,6 +123,13 @@ class StageSwitch(Callback):
         stage2 = trainer.global_step >= self.stage1_steps
         for part in (pl_module.avatar.corrector, pl_module.avatar.deformer):
             part.enabled = stage2
+        self._clock = []
+        self._mark(trainer)
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if trainer.global_step == self.stage1_steps and self._clock and self._clock[-1][0] < self.stage1_steps:
+            self._mark(trainer)
         self._apply(trainer, pl_module)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        self._mark(trainer)
