@@ -39,6 +39,7 @@ def _train(
     tmp_path: Path, *overrides: str, wait: bool = True, cache: Path | None = None, faults: dict[str, str] | None = None
 ) -> subprocess.Popen | subprocess.CompletedProcess:
     """Run `python -m framework.train` on the tiny static fit; `faults` (env values) loads tests/helpers/faults.py."""
+    tmp_path.mkdir(parents=True, exist_ok=True)  # the run's working directory
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache or tmp_path / "cache"), PYTHONUNBUFFERED="1")
     if faults is not None:
         path = os.pathsep.join([str(HELPERS), env.get("PYTHONPATH", "")])

