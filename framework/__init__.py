@@ -3,6 +3,6 @@
 `framework` is the engine (registries, types, training loop); `plugins` holds every interchangeable part.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 from framework import config_resolvers as _config_resolvers  # noqa: E402,F401  (registers ${scaled:...}, ${steps:...})
