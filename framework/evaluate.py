@@ -138,10 +138,11 @@ def summary_table(summary: dict[str, float], splits: list[str], metrics: list[st
 
 
 def main() -> int:
-    import hydra
     from omegaconf import DictConfig
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="evaluate")
+    from framework.cli import hydra_main
+
+    @hydra_main("evaluate")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
             evaluate_from_config(cfg)

@@ -1,14 +1,15 @@
-"""`python -m framework.export ckpt=... pose=...`: the avatar as a standard 3D Gaussian splatting PLY (any frame, a pose
-file, or the canonical pose) and, with `animatable=true`, as a package an engine can skin (framework.formats).
+"""`python -m framework.export ckpt=... motion=...`: the avatar as a standard 3D Gaussian splatting PLY (any frame, a
+pose file, or the canonical pose) and, with `animatable=true`, as a package an engine can skin (framework.formats).
 
     python -m framework.export ckpt=<run>/checkpoints/final.ckpt              # <run>/export/canonical.ply
-    python -m framework.export ckpt=... pose=novel_pose frame=10               # one posed frame
-    python -m framework.export ckpt=... pose=dance.bvh animatable=true         # + <run>/export/dance_animatable/
+    python -m framework.export ckpt=... motion=novel_pose frame=10             # one posed frame
+    python -m framework.export ckpt=... motion=dance.bvh animatable=true       # + <run>/export/dance_animatable/
     python -m framework.export ckpt=... prune=true    # prune + bake first (framework.prune), export the compact model
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from framework.errors import reported_as_message
@@ -16,10 +17,11 @@ from framework.paths import beside_checkpoint
 
 
 def main() -> int:
-    import hydra
     from omegaconf import DictConfig
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="export")
+    from framework.cli import hydra_main
+
+    @hydra_main("export")
     def _main(cfg: DictConfig) -> None:
         import numpy as np
         import torch
@@ -35,6 +37,7 @@ def main() -> int:
 
         with reported_as_message():
             ckpt = str(cfg.ckpt)
+            spec = export_motion(cfg)
             if cfg.prune:
                 from framework.compaction.compact import prune_checkpoint
                 from framework.config_checks import check_prune_config
@@ -50,7 +53,6 @@ def main() -> int:
             module = load_module(ckpt)
             module.eval()
             out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(ckpt, "export")
-            spec = str(cfg.pose)
             body = module.avatar.body
             if spec == "canonical":
                 gaussians = module.avatar.gaussians.gaussians()
@@ -73,6 +75,21 @@ def main() -> int:
 
     _main()
     return 0
+
+
+def export_motion(cfg) -> str:
+    """`motion=`, the same key as render's and view's; `pose=`, its older name, prints a note."""
+    if cfg.get("pose") is None:
+        return str(cfg.motion)
+    from framework.errors import SplatrigError
+
+    if str(cfg.motion) not in ("canonical", str(cfg.pose)):
+        raise SplatrigError(
+            f"motion={cfg.motion} and pose={cfg.pose}: two motions to export. Pass only motion= "
+            "(pose= is its older name)."
+        )
+    print("[splatrig] note: pose= is the older name of motion=; write motion=" + str(cfg.pose), file=sys.stderr)
+    return str(cfg.pose)
 
 
 if __name__ == "__main__":

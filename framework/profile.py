@@ -38,13 +38,12 @@ def run(cfg: DictConfig) -> None:
 
 
 def main() -> None:
-    import hydra
-
+    from framework.cli import hydra_main
     from framework.train import choose_profile
 
     sys.argv = choose_profile(sys.argv)  # the synthetic studio's size follows the hardware profile, as in training
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="scene_profile")
+    @hydra_main("scene_profile")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
             run(cfg)

@@ -42,9 +42,9 @@ def prune_from_config(cfg: DictConfig):
 
 
 def main() -> None:
-    import hydra
+    from framework.cli import hydra_main
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="prune")
+    @hydra_main("prune")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
             prune_from_config(cfg)

@@ -37,10 +37,11 @@ def render_sequence(module, dm, motion: str, cameras: str, camera_index: int, tu
 
 
 def main() -> int:
-    import hydra
     from omegaconf import DictConfig
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="render")
+    from framework.cli import hydra_main
+
+    @hydra_main("render")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
             render_from_config(cfg)

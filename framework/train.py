@@ -15,12 +15,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from framework.cli import hydra_main
 from framework.errors import SplatrigError, reported_as_message
-
-CONFIG_PATH = "pkg://framework.conf"
 
 
 def choose_profile(argv: list[str]) -> list[str]:
@@ -103,10 +101,28 @@ def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians:
     return stats
 
 
+def resume_checkpoint(cfg: DictConfig) -> str | None:
+    """The checkpoint to resume from, `ckpt=` (`ckpt_path=`, its older name, prints a note), checked before anything
+    is built."""
+    ckpt, old = cfg.get("ckpt"), cfg.get("ckpt_path")
+    if old is not None:
+        if ckpt is not None and str(ckpt) != str(old):
+            raise SplatrigError(
+                f"ckpt={ckpt} and ckpt_path={old}: two checkpoints to resume from. Pass only ckpt= "
+                "(ckpt_path= is its older name)."
+            )
+        print(f"[splatrig] note: ckpt_path= is the older name of ckpt=; write ckpt={old}", file=sys.stderr)
+        ckpt = old
+    if ckpt is not None and not Path(str(ckpt)).is_file():
+        raise SplatrigError(f"ckpt={ckpt}: no such checkpoint file. Point it at a run's checkpoints/last.ckpt.")
+    return None if ckpt is None else str(ckpt)
+
+
 def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     """Train (and evaluate) the composed `cfg`. `overrides`: the overrides it was composed with, so `+scene=auto`
     leaves alone what the user set (default: this Hydra job's command line; a caller that composes the config itself,
     such as tools/bench_train.py, has no Hydra job and passes its own)."""
+    ckpt_path = resume_checkpoint(cfg)  # a file check: before the libraries load, the data is opened or a model built
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -208,10 +224,6 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         limit_val_batches=cfg.trainer.get("limit_val_batches", 1.0),
         plugins=[AtomicCheckpointIO()],  # a kill during a save leaves the previous checkpoint intact
     )
-    ckpt_path = cfg.get("ckpt_path")
-    if ckpt_path is not None and not Path(ckpt_path).is_file():
-        raise SplatrigError(f"ckpt_path={ckpt_path}: no such checkpoint file. Point it at a run's "
-                            f"checkpoints/last.ckpt.")  # fmt: skip
     reset_peak_memory()
     fit_started, fit_cpu = time.perf_counter(), time.process_time()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
@@ -247,7 +259,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         metrics=metrics_from_summary(result),
     )  # fmt: skip
     print(f"\n[splatrig] results: {out_dir}")
-    print(f"[splatrig]   checkpoints: {ckpt_dir}  (resume with ckpt_path={ckpt_dir / 'last.ckpt'})")
+    print(f"[splatrig]   checkpoints: {ckpt_dir}  (resume with ckpt={ckpt_dir / 'last.ckpt'})")
     print(f"[splatrig]   tensorboard: tensorboard --logdir {out_dir / 'tb'}")
     if result:
         print(f"[splatrig]   metrics: {out_dir / 'eval'}, {record}")
@@ -268,7 +280,7 @@ def _hydra_job() -> tuple[str | None, list[str]]:
     return hc.job.config_name, list(hc.overrides.task)
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")
+@hydra_main("train")
 def _hydra_main(cfg: DictConfig) -> float | None:
     with reported_as_message():
         return run(cfg)

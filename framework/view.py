@@ -11,10 +11,11 @@ from framework.errors import reported_as_message
 
 
 def main() -> int:
-    import hydra
     from omegaconf import DictConfig
 
-    @hydra.main(version_base="1.3", config_path="pkg://framework.conf", config_name="view")
+    from framework.cli import hydra_main
+
+    @hydra_main("view")
     def _main(cfg: DictConfig) -> None:
         from framework.animation.camera_paths import subject_view
         from framework.lightning.trained_model import datamodule_for, load_module

@@ -22,7 +22,7 @@ def package(tiny_avatar, tmp_path_factory):
     root = tmp_path_factory.mktemp("package")
     out = root / "export"
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache))
-    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "pose=train", "frame=3", "animatable=true",
+    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "motion=train", "frame=3", "animatable=true",
            f"out_dir={out}"]  # fmt: skip
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=root)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -145,7 +145,7 @@ def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run
     assert saved["global_step"] == 20
     assert saved["state_dict"]["avatar.gaussians.params.means"].shape[0] != 400, "no densification before the kill"
 
-    proc = _train(killed, "trainer.max_steps=60", f"ckpt_path={ckpt_dir / 'last.ckpt'}", cache=cache)
+    proc = _train(killed, "trainer.max_steps=60", f"ckpt={ckpt_dir / 'last.ckpt'}", cache=cache)
     assert proc.returncode == 0, proc.stderr[-3000:]
     resumed_dir = _run_dirs(killed)[-1]
     final = _load(resumed_dir / "checkpoints" / "last.ckpt")
@@ -175,8 +175,8 @@ def test_unknown_component_gives_one_clear_message(tmp_path: Path):
 
 def test_missing_config_option_names_the_group(tmp_path: Path):
     proc = _train(tmp_path, "rasterizer=does_not_exist")
-    assert proc.returncode != 0
-    assert "rasterizer/does_not_exist" in proc.stderr
+    assert proc.returncode == 2
+    assert "rasterizer=does_not_exist: no such option in group 'rasterizer'" in proc.stderr
     assert "Traceback" not in proc.stderr
 
 
@@ -184,7 +184,7 @@ def test_checkpoint_from_incompatible_config_is_refused(tmp_path: Path):
     proc = _train(tmp_path, "trainer.max_steps=10")
     assert proc.returncode == 0, proc.stderr[-3000:]
     ckpt = _run_dirs(tmp_path)[-1] / "checkpoints" / "last.ckpt"
-    proc = _train(tmp_path, "trainer.max_steps=20", f"ckpt_path={ckpt}", "corrector=latent")
+    proc = _train(tmp_path, "trainer.max_steps=20", f"ckpt={ckpt}", "corrector=latent")
     assert proc.returncode == 2
     assert "incompatible config" in proc.stderr and "corrector" in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -313,7 +313,7 @@ def test_gpu_training_resumes_rolls_back_and_evaluates_on_the_device(tmp_path: P
     run = _run_dirs(first)[-1]
     record = json.loads((run / "results.json").read_text())
     assert record["render_fps"]["device"].startswith("cuda"), record["render_fps"]
-    proc = _train(first, "trainer.max_steps=45", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
+    proc = _train(first, "trainer.max_steps=45", f"ckpt={run / 'checkpoints' / 'last.ckpt'}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rolled = tmp_path / "rolled"
     proc = _train(rolled, "trainer.max_steps=40", "divergence.action=rollback",

@@ -17,14 +17,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
 from framework.atomic import atomic_write_text
+from framework.cli import hydra_main
 from framework.errors import SplatrigError, reported_as_message
-
-CONFIG_PATH = "pkg://framework.conf"
 
 
 def sample_frames(frames: list[int], count: int | None) -> list[int]:
@@ -155,7 +153,7 @@ def run(cfg: DictConfig) -> int:
     return 0 if report.ok else 1
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="check")
+@hydra_main("check")
 def _hydra_main(cfg: DictConfig) -> None:
     with reported_as_message():
         code = run(cfg)

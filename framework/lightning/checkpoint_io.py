@@ -59,4 +59,4 @@ class AtomicCheckpointIO(TorchCheckpointIO):
             torch.save(checkpoint, tmp)
 
     def load_checkpoint(self, path: Any, map_location: Any | None = None, weights_only: bool | None = None):
-        return read_checkpoint(path, map_location or "cpu", what="ckpt_path")
+        return read_checkpoint(path, map_location or "cpu")

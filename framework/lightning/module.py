@@ -435,7 +435,7 @@ def _check_compatible(stored: dict[str, Any], current: dict[str, Any]) -> None:
     if problems:
         raise ConfigError(
             "the checkpoint was made with an incompatible config (" + "; ".join(problems) + "). Resume with the "
-            "checkpoint's choices (`" + " ".join(fixes) + "`), or start a new run without ckpt_path."
+            "checkpoint's choices (`" + " ".join(fixes) + "`), or start a new run without ckpt=."
         )
 
 

@@ -17,8 +17,8 @@ from framework.errors import SplatrigError
 from framework.evaluation.run_record import FILENAME, load_run_record
 
 #: override keys (before "=") that do not change the trained model
-NOT_VARIANT_KEYS = ("seed", "paths.", "hydra.", "callbacks.", "logger", "threads", "small_work_threads", "ckpt_path",
-                    "data_loader.", "data.workers", "eval.val_max_items")  # fmt: skip
+NOT_VARIANT_KEYS = ("seed", "paths.", "hydra.", "callbacks.", "logger", "threads", "small_work_threads", "ckpt",
+                    "ckpt_path", "data_loader.", "data.workers", "eval.val_max_items")  # fmt: skip
 
 
 class ReportError(SplatrigError):
