@@ -27,9 +27,7 @@ IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])  # wxyz; read-only, moved to 
 
 def quat_normalize(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> Tensor:
     """Normalise quaternions along `dim` ([..., 4]; dim=0 for [4, N]); a zero one maps to the identity, not NaN."""
-    # Compiled code (`compile.pose`) fuses autograd's backward anyway, and dynamo fails to lift `eps` into this
-    # Function's subgraph when it traces it within a larger graph (torch 2.13: "lift_tracked_freevar_to_input").
-    if q.requires_grad and few_kernels(q) and not torch.compiler.is_compiling():
+    if q.requires_grad and few_kernels(q):
         return _QuatNormalize.apply(q, eps, dim)
     return _normalize_with_norm(q, eps, dim)[0]
 
@@ -91,15 +89,6 @@ def _rotation_tables() -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
 
 
 (_ROTMAT_INDEX, _ROTMAT_COEF), (_HAMILTON_INDEX, _HAMILTON_COEF) = _rotation_tables()  # [36], [36]; [16], [16]
-
-
-def rotation_quadratic_forms() -> Tensor:
-    """Q [9, 4, 4] float64, each symmetric, with R(q)_e = q^T Q_e q for a unit quaternion q (wxyz), e = 3i + j: the
-    rotation table of `quat_to_rotmat`'s few-kernel form as matrices (Horn's method in `framework.rig.polar` needs
-    sum_e A_e Q_e)."""
-    rows = torch.arange(len(_ROTMAT_INDEX)) // 4 * 16  # [36]: each entry's four terms
-    Q = torch.zeros(9 * 16, dtype=torch.float64).index_add_(0, rows + _ROTMAT_INDEX, _ROTMAT_COEF).view(9, 4, 4)
-    return 0.5 * (Q + Q.transpose(1, 2))
 
 
 def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Tensor:

@@ -8,14 +8,14 @@ import torch
 
 from framework.image import compiled_ssim
 from framework.image.ssim import ssim_map
-from framework.model import compiled_posenc, corrector_mlp, lbs_deformer, narrow_linear
+from framework.model import compiled_posenc, corrector_mlp, lbs_deformer
 from framework.runtime import use_compiled_paths
 from plugins.rasterizer import numba_cpu
 
 
 def test_switch_turns_every_compiled_path_away_and_restores_it() -> None:
     x = torch.rand(1, 3, 24, 24)
-    modules = (compiled_ssim, compiled_posenc, lbs_deformer, numba_cpu, corrector_mlp, narrow_linear)
+    modules = (compiled_ssim, compiled_posenc, lbs_deformer, numba_cpu, corrector_mlp)
     assert all(m.cpu_float(x) for m in modules)
     previous = use_compiled_paths(False)
     try:
@@ -30,9 +30,9 @@ def test_switch_turns_every_compiled_path_away_and_restores_it() -> None:
     assert all(m.cpu_float(x) for m in modules)
 
 
-def test_fused_corrector_layers_follow_the_switch_and_stay_out_of_torch_compile() -> None:
+def test_fused_corrector_layers_follow_the_switch() -> None:
     """F_a's oneDNN fused layers (CPU inference) are a compiled CPU path too: switched off, the plain layers run, as on
-    a GPU; and under `torch.compile` (`compile.pose`) the plain layers run, since inductor cannot trace the fused op."""
+    a GPU."""
     if not corrector_mlp._FUSED_LINEAR_AVAILABLE:
         pytest.skip("this torch build has no oneDNN fused linear: the plain layers always run")
     x = torch.rand(8, 4)
@@ -43,6 +43,4 @@ def test_fused_corrector_layers_follow_the_switch_and_stay_out_of_torch_compile(
             assert not corrector_mlp._fuses_layers(x)
         finally:
             use_compiled_paths(previous)
-        compiled = torch.compile(lambda t: t + 1 if corrector_mlp._fuses_layers(t) else t - 1, backend="eager")
-        torch.testing.assert_close(compiled(x), x - 1)
     assert not corrector_mlp._fuses_layers(x)  # gradients on: the plain layers (the fused op has no backward)

@@ -227,23 +227,6 @@ def test_zero_direction_is_finite() -> None:
     assert torch.isfinite(out).all() and torch.isfinite(d.grad).all()
 
 
-@pytest.mark.slow
-def test_compiled_matches_eager() -> None:
-    """compile=True renders and differentiates the same function (first call compiles for tens of seconds)."""
-    eager, compiled = RASTERIZERS.build("torch_ref"), RASTERIZERS.build("torch_ref", compile=True)
-    scene = make_random_scene(3, 400, 64, 64, num_cameras=2)
-    outs, grads = [], []
-    for r in (eager, compiled):
-        params = [t.clone().requires_grad_() for t in scene.tensors()]
-        out = render_scene(r, scene.with_tensors(params))
-        (out.rgb.square().sum() + out.alpha.sum()).backward()
-        outs.append(out)
-        grads.append([p.grad for p in params])
-    assert _rel(outs[1].rgb, outs[0].rgb) < 1e-5
-    for a, b in zip(grads[1], grads[0], strict=True):
-        assert _rel(a, b) < 1e-4
-
-
 def test_helper_cameras_look_at_the_origin_and_index_round_trips() -> None:
     """The helper cameras used above sit 4 m from the origin and look at it (its projection is the principal point,
     whatever the yaw), and `Cameras.index(i)` returns exactly camera i of a stack."""

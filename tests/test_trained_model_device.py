@@ -32,3 +32,21 @@ def test_gsplat_checkpoint_renders_on_the_cpu_with_numba(tiny_avatar, tmp_path_f
     ref = render_rgb(reference, item.cameras, item.pose[0], root, int(item.frame[0]))
     assert rgb.abs().max() > 0.05
     assert torch.equal(rgb, ref)
+
+
+def test_checkpoint_stored_with_removed_compile_keys_still_loads(tiny_avatar, tmp_path_factory, monkeypatch) -> None:
+    """Configs written before `torch_ref(compile=...)` and `compile.pose` were removed store those keys: such a
+    checkpoint loads (torch_ref eager; the top-level `compile` node is read by nothing) with the same tensors."""
+    ckpt, cache = tiny_avatar
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
+    checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
+    cfg = checkpoint["hyper_parameters"]["cfg"]
+    cfg["rasterizer"] = {"name": "torch_ref", "compile": False}
+    cfg["compile"] = {"pose": False}
+    old_ckpt = tmp_path_factory.mktemp("old_keys") / "old_keys.ckpt"
+    torch.save(checkpoint, old_ckpt)
+    module = load_module(old_ckpt, map_location="cpu")
+    assert module.avatar.rasterizer.registry_name == "torch_ref"
+    loaded = module.state_dict()
+    assert loaded.keys() == checkpoint["state_dict"].keys()
+    assert all(torch.equal(loaded[k], v) for k, v in checkpoint["state_dict"].items())

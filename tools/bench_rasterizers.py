@@ -1,7 +1,7 @@
 """Rasterizer backends side by side: forward ms, forward+backward ms, peak memory, ratio to torch_ref.
 
     python tools/bench_rasterizers.py                                  # every registered backend, default sizes
-    python tools/bench_rasterizers.py --backends torch_ref torch_ref:compile=true jax --sizes 10k@128 30k@256
+    python tools/bench_rasterizers.py --backends torch_ref numba jax --sizes 10k@128 30k@256
     python tools/bench_rasterizers.py --device cuda --json bench.json
 
 All runs happen in one process on the same scenes; times are medians of `--repeats` runs after `--warmup` runs.
@@ -78,7 +78,7 @@ def parse_size(spec: str) -> tuple[int, int]:
 
 
 def parse_backend(spec: str) -> tuple[str, dict[str, Any]]:
-    """'torch_ref:compile=true' -> ('torch_ref', {'compile': True})."""
+    """'gsplat:packed=true' -> ('gsplat', {'packed': True})."""
     import yaml
 
     name, _, rest = spec.partition(":")

@@ -174,9 +174,6 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--json", default=None)
     ap.add_argument("--scaling", action="store_true", help="fit each part as fixed + per-Gaussian cost")
-    ap.add_argument("--compile-pose", action="store_true",
-                    help="run F_a and the deformer under torch.compile (Avatar.compile_pose_path; `compile.pose` in "
-                         "training): whether fused kernels pay for a frame")  # fmt: skip
     ap.add_argument("--accelerator-path", action="store_true",
                     help="run a GPU's torch code on this CPU (compiled CPU paths off): its operators and host waits, "
                          "and at a small size the host's cost of a frame")  # fmt: skip
@@ -189,8 +186,6 @@ def main() -> None:
     else:
         avatar, degree = synthetic_avatar(args.body, args.num, args.device), SYNTHETIC_SH_DEGREE
     avatar.eval()
-    if args.compile_pose:
-        avatar.compile_pose_path()  # compiles on the first frames: the warm-up (--warmup) absorbs it
     body = avatar.body
     J = body.num_input_joints
     center = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
@@ -257,14 +252,11 @@ def pose_path_report(
     table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
     header = ("part", "ms", "of the novel-view frame", "operators", "queue device work", "host waits")
     print(format_table(table, header))
-    if getattr(avatar, "pose_compiled", False):
-        print("\nThe counts are of the eager code: under a dispatch mode (the counter) torch.compile runs the "
-              "function it wraps eagerly; the times are the compiled frame's.")  # fmt: skip
     with torch.no_grad():
         device_events = cuda_device_events(lambda: pose_frame(avatar, batches[-1], sh_degree, lambda: None))
     if device_events is not None:
-        print(f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included (torch.profiler; "
-              f"compiled code as it runs): {device_events}")  # fmt: skip
+        print(f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included "
+              f"(torch.profiler): {device_events}")  # fmt: skip
     with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0

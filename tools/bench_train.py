@@ -70,13 +70,11 @@ VARIANTS: dict[str, list[str]] = {
     "default": [],
     "log_every_step": ["trainer.log_every=1"],
     "polar_float64": ["deformer.polar_dtype=float64", "deformer.compiled_skinning=false"],  # the torch path's polar
-    "compile": ["rasterizer=torch_ref", "rasterizer.compile=true"],
     "data_worker": ["data_loader.num_workers=1"],
     "torch_ref": ["rasterizer=torch_ref"],
     "torch_weights": ["deformer.compiled_weights=false"],
     "torch_skinning": ["deformer.compiled_skinning=false"],
     "kornia_ssim": ["+loss.terms.dssim.compiled=false"],
-    "compile_pose": ["compile.pose=true"],
     "checks_before_update": ["divergence.deferred=false"],  # a GPU's divergence check read before each update
     "small_work_all_threads": ["small_work_threads=null"],  # losses, optimizer and bookkeeping on every CPU thread
 }
@@ -267,9 +265,8 @@ class Instrument:
         c.hook_module("polar + LBS (+ SH rotation) (deformer)", avatar.deformer)
         if hasattr(avatar, "_view_colour"):
             avatar._view_colour = c.wrap("view colour (SH at R^T d, one camera)", avatar._view_colour)
-        # the centres alone; the centres, the L_w points and L_w (not when the deformer is compiled: a timer inside it
-        # would split its graph, so the lookup is then charged to the deformer's row)
-        for method in () if getattr(avatar, "pose_compiled", False) else ("weights", "smooth_weights"):
+        # the centres alone; the centres, the L_w points and L_w
+        for method in ("weights", "smooth_weights"):
             if hasattr(avatar.deformer, method):
                 setattr(avatar.deformer, method, c.wrap("weight lookup + F_dw", getattr(avatar.deformer, method)))
         c.hook_module("avatar glue (parameters, activations)", avatar)

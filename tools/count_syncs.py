@@ -184,9 +184,6 @@ def main(argv: list[str] | None = None) -> None:
         "aten operators per step (on a GPU each costs the host a dispatch, microseconds; those that queue device work "
         f"launch a kernel or a copy, the rest are views and bare allocations): {ops}"
     )
-    if cfg.compile.pose:
-        print("(compile.pose is on, but these are the eager code's counts: under a dispatch mode, the counter, "
-              "torch.compile runs the functions it wraps eagerly)")  # fmt: skip
     if args.top_operators > 0:
         print(
             "\n| operators per step | of them queuing device work | issued in (forward, and backward where it runs "

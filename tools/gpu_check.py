@@ -62,7 +62,6 @@ TESTS_WITHOUT_GSPLAT = [
     "tests/test_finite_probe.py",
     "tests/test_batch_transfer.py",
     "tests/test_host_waits.py",
-    "tests/test_compile_pose.py",
 ]
 TESTS_WITH_GSPLAT = [
     "tests/test_gsplat_backend.py",

@@ -79,8 +79,6 @@ class SplatModule(L.LightningModule):
             GaussianParams(gaussians), rasterizer, corrector, deformer, body, refiner,
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
         )  # fmt: skip
-        if bool((cfg.get("compile") or {}).get("pose", False)):
-            self.avatar.compile_pose_path()
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
         deformer.use_aux(self.loss_fn.aux_keys)  # e.g. no L_w term: the deformer skips the six-point weight lookups
         self.densifier = build_component("densifier", cfg["densifier"])

@@ -33,6 +33,10 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
     hparams = checkpoint["hyper_parameters"]
     cfg = hparams["cfg"]
     built = cfg
+    raster = cfg["rasterizer"]
+    if str(raster.get("name")) == "torch_ref" and "compile" in raster:
+        # written when torch_ref took `compile` (its torch.compile kernels, removed: within noise of eager)
+        built = {**cfg, "rasterizer": {k: v for k, v in raster.items() if k != "compile"}}
     if str(cfg["rasterizer"].get("name")) == "gsplat" and device.type != "cuda":
         built = {**cfg, "rasterizer": {"name": "numba"}}
         print(f"[splatrig] ckpt={ckpt}: trained with rasterizer=gsplat, which renders CUDA tensors only; rendering on "

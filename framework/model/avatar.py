@@ -136,23 +136,6 @@ class Avatar(nn.Module):
         self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
         # Real-time path: novel views of one pose reuse the corrected, posed Gaussians (inference only).
         self._posed_cache: tuple[bytes, Gaussians, dict[str, Tensor], Tensor | None] | None = None
-        self.pose_compiled = False  # `compile_pose_path`
-
-    def compile_pose_path(self) -> None:
-        """Hand the forward passes of the corrector F_a and the deformer (weights, LBS, polar, SH frames) to
-        `torch.compile` with dynamic shapes, in place: the modules, their parameter names and checkpoints stay as they
-        are, and hooks (a benchmark's timers) run outside the compiled code.
-
-        Why: a GPU training step issues ~1700 small operators (tools/count_syncs.py), each a kernel launch; compiled,
-        the pose path's element-wise chains can run as a few fused kernels forward and backward. The polar
-        decomposition traces a form without host reads (`framework.rig.polar`), so on a GPU (and on a CPU's
-        accelerator path) the deformer compiles as one graph; a CPU's own compiled loops (numba) stay outside the
-        graph. Dynamic shapes, because densification changes N. Off by default: on a CPU it gained nothing
-        (docs/results/speed.md, eighteenth and twentieth passes), and no GPU has timed it yet."""
-        for module in (self.corrector, self.deformer):
-            if module is not None:
-                module.forward = torch.compile(module.forward, dynamic=True)
-        self.pose_compiled = True
 
     @property
     def rasterizer(self) -> Rasterizer:

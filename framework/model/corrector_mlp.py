@@ -19,7 +19,6 @@ from torch import Tensor, nn
 from framework.device_constants import constant_on
 from framework.geometry import IDENTITY_QUAT, quat_multiply
 from framework.interfaces.corrector import Corrector
-from framework.model.narrow_linear import NarrowLinear
 from framework.runtime import cpu_float
 from framework.types import Gaussians, num_sh_coeffs
 
@@ -38,7 +37,6 @@ def _fuses_layers(x: Tensor) -> bool:
         and cpu_float(x)  # a CPU tensor, and the compiled CPU paths not switched off (a GPU's code on a CPU)
         and x.dtype == torch.float32
         and _FUSED_LINEAR_AVAILABLE
-        and not torch.compiler.is_compiling()  # inductor cannot trace the oneDNN op (`compile.pose`)
     )
 
 
@@ -102,7 +100,7 @@ class MLPCorrector(Corrector):
             raise ValueError(f"corrector.bind: num_pose_features must be positive, got {num_pose_features}.")
         self.num_pose_features = num_pose_features
         self.pose_in = nn.Linear(num_pose_features, self.hidden, bias=False)
-        self.feature_in = NarrowLinear(self.feature_dim, self.hidden)  # 9 wide: its backward products reoriented
+        self.feature_in = nn.Linear(self.feature_dim, self.hidden)
         trunk: list[nn.Module] = []
         for _ in range(self.num_layers - 2):
             # in place: the activation overwrites the product it follows (whose backward does not read it), so no

@@ -13,11 +13,6 @@ The rotational part itself is perfectly differentiable there: its derivative onl
   U diag(1, 1, det(U V^T)) V^T) or nearly singular (e.g. a 50/50 blend of antipodal bone rotations, which is rank 1)
   -- are routed to a float64 SVD on that subset only, whose *values* are fine. method="svd" runs the float64 SVD on
   everything (the reference; measured 2.4x slower than float64 Newton on 8k matrices on one CPU core).
-- Under `torch.compile` (`compile.pose`) the forward takes a form with no host read and no data-dependent branch,
-  so the deformer compiles as one graph: a fixed number of Newton steps on every matrix fit for Newton, and for the
-  others the rotation maximising tr(R^T A) from Horn's quaternion matrix (`_rotation_horn`), chosen per matrix on
-  the device. Same values as the eager forms to float32 rounding (float64: ~1e-13), except where the closest rotation
-  is not unique (a rank-1 blend, -I): any maximiser is then returned, the SVD's one of them.
 - Backward (closed form): with dR = R [w]x and S symmetric, the skew part of R^T dA gives
   S [w]x + [w]x S = [(tr(S) I - S) w]x, so w = (tr(S) I - S)^-1 vee(R^T dA - dA^T R) and
   dL/dA = R [h]x with h = (tr(S) I - S)^-1 vee(R^T G - G^T R), G = dL/dR. The 3x3 solve is Tikhonov-regularised,
@@ -32,7 +27,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
-from framework.geometry import products_3x3, rotation_quadratic_forms
+from framework.geometry import products_3x3
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
 from framework.runtime import cpu_float
 
@@ -50,17 +45,6 @@ _NEWTON_TOL = {torch.float64: 1e-13, torch.float32: 1e-6}
 # singular-value ratios down to 0.1 (0.7: 3 steps, 0.01: 5). Batches that need more fail the read and take the
 # checked path, which costs a sync per step as on the CPU.
 _NEWTON_STEPS_ACCELERATOR = 4
-# The traced form's fixed Newton steps. Measured on 13k random matrices fit for Newton (smallest singular value
-# 5e-7..1 of the largest, scales 1e-3..1e3): every one converged by step 5 in float32 and by step 6 in float64 (to
-# 1e-13; the float32 floor there is the rotation's own conditioning, 9e-6 at s2 ~ s3 ~ 1e-4); one step more each.
-_NEWTON_STEPS_TRACED = {torch.float32: 6, torch.float64: 7}
-# Squarings of Horn's shifted quaternion matrix (in float64): its dominant eigenvector converges as
-# ((l2 + c) / (l1 + c))^(2^k), where l1 - l2 = 2 (s2 + s3) for det > 0 and 2 (s2 - s3) for det < 0. On 5000 random
-# reflections 14 squarings reached 4e-14 against the float64 SVD; the matrices it gets besides are nearly singular,
-# where that gap can be tiny (a 50/50 blend of rotations 1e-4 short of antipodal: 2e-4), and 24 converge for gaps
-# down to ~3e-6 (e^-50). Under compilation the squarings are fused; a gap below that leaves a mix of nearly equal
-# maximisers.
-_HORN_SQUARINGS = 24
 
 
 def _cofactor_index() -> Tensor:
@@ -158,60 +142,12 @@ def _newton_inputs(X: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return C, det, norm_sq, det > POLAR_SINGULAR_TOL * mean_sq * mean_sq.sqrt()
 
 
-_QUADRIC = rotation_quadratic_forms().view(9, 16, 1)  # [9, 16, 1]: R(q)_e = q^T Q_e q
-_SQRT3 = 3.0**0.5
-_EYE4 = torch.eye(4, dtype=torch.float64).unsqueeze(-1)  # [4, 4, 1]
-_EYE3 = torch.eye(3, dtype=torch.float64).reshape(9, 1)  # [9, 1]
-
-
-def _rotation_horn(X: Tensor) -> Tensor:
-    """The proper rotation maximising tr(R^T A) for entry-major X [9, M] -> [9, M], with no host read: the polar
-    factor where det A > 0, U diag(1, 1, -1) V^T (the closest proper rotation) where det A < 0.
-
-    tr(R(q)^T A) = q^T K q with K = sum_e A_e Q_e (Horn 1987), so the maximiser is the dominant eigenvector of K. Its
-    eigenvalues lie in [-sum s, sum s] (s: A's singular values) and sqrt(3) |A| >= sum s, so K + sqrt(3) |A| I is
-    positive semi-definite; repeated squaring (normalised by the trace) turns it into a multiple of q q^T, and the
-    column with the largest diagonal entry is q up to its length. Each matrix is first divided by its largest entry, so
-    scale does not matter; a zero matrix gives the identity. Where the top eigenvalue is repeated (rank-1 blends, -I),
-    the result is one unit vector of its eigenspace: a maximiser, as the SVD's is another."""
-    M = X.shape[1]
-    Q = constant_on(_QUADRIC, X.device, X.dtype)  # [9, 16, 1]
-    Xn = X / X.abs().amax(0).clamp_min(torch.finfo(X.dtype).tiny)  # [9, M], largest entry 1 (or all 0)
-    shift = (Xn.square().sum(0).sqrt() * _SQRT3).clamp_min(1.0)  # [M]; > 1 unless A = 0
-    P = (Q * Xn.unsqueeze(1)).sum(0).view(4, 4, M)  # [4, 4, M] = K
-    P = P + shift * constant_on(_EYE4, X.device, X.dtype)
-    for _ in range(_HORN_SQUARINGS):
-        P = P / P.diagonal(0, 0, 1).sum(-1)  # trace 1: entries stay in [-1, 1]
-        P = (P.unsqueeze(2) * P.unsqueeze(0)).sum(1)  # [4, 4, M] = P @ P per matrix, element-wise (no TF32)
-    column = P.diagonal(0, 0, 1).argmax(-1)  # [M]
-    q = P.gather(1, column.view(1, 1, M).expand(4, 1, M)).squeeze(1)  # [4, M]
-    q = q * q.square().sum(0).rsqrt()
-    return (Q * (q.unsqueeze(1) * q.unsqueeze(0)).view(1, 16, M)).sum(1)  # [9, M]: R_e = q^T Q_e q
-
-
 def _compute_dtype(X: Tensor, dtype: torch.dtype | None) -> torch.dtype:
     """The iteration's dtype: `dtype`, else X's and at least float32; float32 or float64 only."""
     compute = dtype or torch.promote_types(X.dtype, torch.float32)
     if compute not in (torch.float32, torch.float64):
         raise ValueError(f"polar: dtype must be torch.float32 or torch.float64, got {compute}.")
     return compute
-
-
-def _polar_values_traced(X: Tensor, dtype: torch.dtype | None = None) -> Tensor:
-    """`_polar_values_entry_major` as `torch.compile` traces it: X [9, M] -> R [9, M] with no host read and no branch
-    on values, so a compiled deformer stays one graph. A matrix with a NaN or inf entry becomes the identity; matrices
-    fit for Newton (the same test as the eager forms) take `_NEWTON_STEPS_TRACED` steps, the others (det <= 0 or
-    nearly singular) Horn's maximiser in float64, as the eager forms take the float64 SVD there; both are computed for
-    every matrix and one is chosen per matrix."""
-    compute = _compute_dtype(X, dtype)
-    eye = constant_on(_EYE3, X.device, compute)
-    Xc = X.to(compute)
-    Xc = torch.where(torch.isfinite(Xc).all(0), Xc, eye)  # [9, M]
-    good = _newton_inputs(Xc)[3]  # [M]
-    R = torch.where(good, Xc, eye)  # the others iterate the identity, which stays finite
-    for _ in range(_NEWTON_STEPS_TRACED[compute]):
-        R = _newton_step(R, *_cofactors_det_norm(R))
-    return torch.where(good, R, _rotation_horn(Xc.double()).to(compute)).to(X.dtype)
 
 
 @torch.no_grad()
@@ -225,7 +161,6 @@ def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype 
     return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
 
 
-@torch.compiler.disable  # data-dependent (convergence checks, SVD fallback); compiled code takes `_polar_values_traced`
 @torch.no_grad()
 def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
     """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
@@ -279,10 +214,7 @@ def _skew_entry_major(v: Tensor) -> Tensor:
 class _PolarRotation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, X: Tensor, dtype: torch.dtype | None) -> Tensor:
-        if torch.compiler.is_compiling():
-            R = _polar_values_traced(X.detach(), dtype)
-        else:
-            R = _polar_values_entry_major(X, dtype=dtype)
+        R = _polar_values_entry_major(X, dtype=dtype)
         ctx.save_for_backward(X, R)
         return R
 

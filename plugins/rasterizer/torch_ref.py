@@ -11,14 +11,10 @@ padding and per-tile sorts of a tiled renderer cost far more than they save. Per
 A custom autograd function does the compositing backward in closed form from a second segmented sum (the effect of
 each alpha on the pairs behind it), keeping per-pair indices, offsets, alpha, transmittance and the entry values the
 forward gathered for each pair (conic, opacity, colour, depth), so the backward gathers only per-pixel gradients.
-The per-pair arithmetic lives in four small functions that `compile=True` hands to `torch.compile`.
 """
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -170,21 +166,6 @@ def backward_scatter(
     return acc
 
 
-@dataclass(frozen=True)
-class Kernels:
-    """The per-pair stages, eager or compiled; the integer bookkeeping between them stays eager."""
-
-    alpha: Callable[..., tuple[Tensor, ...]] = pair_alpha
-    accumulate: Callable[..., Tensor] = forward_accumulate
-    backward_terms: Callable[..., Tensor] = backward_pair_terms
-    scatter: Callable[..., Tensor] = backward_scatter
-
-    @staticmethod
-    def compiled() -> Kernels:
-        c = functools.partial(torch.compile, dynamic=True)
-        return Kernels(c(pair_alpha), c(forward_accumulate), c(backward_pair_terms), c(backward_scatter))
-
-
 class _Composite(torch.autograd.Function):
     """Front-to-back compositing of (entry, pixel) pairs sorted by (pixel, depth) with early termination.
 
@@ -207,10 +188,8 @@ class _Composite(torch.autograd.Function):
         pix: Tensor,  # [P]
         num_pixels: int,
         width: int,
-        kernels: Kernels,
     ) -> tuple[Tensor, Tensor, Tensor]:
         dtype, dev = mx.dtype, mx.device
-        ctx.kernels = kernels
         M = mx.shape[0]
         ctx.M = M
         if pix.numel() == 0:  # nothing drawn: keep the graph (means2d.grad becomes zeros, not None)
@@ -220,12 +199,12 @@ class _Composite(torch.autograd.Function):
         ctx.empty = False
         px, py = pixel_centres(num_pixels, width, dtype, dev)
         px, py = torch.take(px, pix), torch.take(py, pix)
-        dx, dy, alpha = kernels.alpha(mx, my, ca, cb, cc, op, ent, px, py)  # [P]; alpha 0 = no contribution
+        dx, dy, alpha = pair_alpha(mx, my, ca, cb, cc, op, ent, px, py)  # [P]; alpha 0 = no contribution
         alpha, log1m, T, counts = pair_transmittance(alpha, pix, num_pixels)
         pair_cols = _rows(4, ent.shape[0], colors)  # [4, P]: each pair's entry r, g, b, z
         for i, col in enumerate((*colors.unbind(1), depths)):
             torch.take(col, ent, out=pair_cols[i])
-        acc = kernels.accumulate(pair_cols, pix, num_pixels, T, alpha, log1m)  # [5, num_pixels]
+        acc = forward_accumulate(pair_cols, pix, num_pixels, T, alpha, log1m)  # [5, num_pixels]
         T_final = torch.exp(acc[4])
         ctx.save_for_backward(ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final)
         ctx.set_materialize_grads(False)  # an unused output (depth, usually) gets no backward work
@@ -234,7 +213,7 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, g_rgb: Tensor | None, g_T: Tensor | None, g_depth: Tensor | None):  # type: ignore[override]
-        nones = (None,) * 5
+        nones = (None,) * 4
         M = ctx.M
         given = [g for g in (g_rgb, g_T, g_depth) if g is not None]
         if not given:
@@ -243,7 +222,6 @@ class _Composite(torch.autograd.Function):
             z = given[0].new_zeros(M)
             return z, z, z, z, z, z, given[0].new_zeros(M, 3), z, *nones
         ca, cb, cc, op, pair_cols, ent, pix, counts, dx, dy, alpha, T, T_final = ctx.saved_tensors
-        k: Kernels = ctx.kernels
         num_pixels = T_final.shape[0]
         if g_rgb is None:
             g_rgb = T_final.new_zeros(num_pixels, 3)
@@ -254,12 +232,12 @@ class _Composite(torch.autograd.Function):
         pair_grads = _rows(K, pix.shape[0], grads)  # [K, P] gathered once for both kernels
         for i in range(K):
             torch.take(grads[i], pix, out=pair_grads[i])
-        v = k.backward_terms(pair_cols[:K], pair_grads)
+        v = backward_pair_terms(pair_cols[:K], pair_grads)
         w = T * alpha
         cs = torch.cumsum(w * v, 0, dtype=torch.float64)
         last = (torch.cumsum(counts, 0) - 1).clamp_min(0)
         after = torch.take(torch.take(cs, last), pix).sub_(cs).to(T.dtype)  # sum of w * v over later pairs
-        acc = k.scatter(M, pair_grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
+        acc = backward_scatter(M, pair_grads, tail, ent, pix, dx, dy, alpha, T, w, v, after)  # [6 + K, M]
         s_x, s_y, s_xx, s_xy, s_yy, s_g = acc[:6]
         g_mx, g_my = ca * s_x + cb * s_y, cb * s_x + cc * s_y  # d sigma / d mean2d = (a dx + b dy, b dx + c dy)
         g_op = -s_g / op  # d alpha / d opacity = alpha / opacity, and s_g sums -alpha dL/dalpha
@@ -278,7 +256,6 @@ def composite(
     num_cameras: int,
     width: int,
     height: int,
-    kernels: Kernels,
     split_rows: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Entries sorted by depth -> per-pixel (rgb sum [CHW, 3], T_final [CHW], depth [CHW]).
@@ -289,7 +266,7 @@ def composite(
     if len(bands) > 1:
         entries = (conics, opacities, colors, depths, cam, half, num_cameras, width)
         shift = means2d.new_tensor([0.0, 1.0])
-        parts = [composite(means2d - r0 * shift, *entries, r1 - r0, kernels, False) for r0, r1 in bands]
+        parts = [composite(means2d - r0 * shift, *entries, r1 - r0, False) for r0, r1 in bands]
         return tuple(
             torch.cat([p[i].reshape(num_cameras, -1, width, *p[i].shape[1:]) for p in parts], dim=1).flatten(0, 2)
             for i in range(3)
@@ -302,7 +279,7 @@ def composite(
     with torch.no_grad():
         ent, pix = enumerate_pairs(means2d.detach(), conics.detach(), opacities.detach(), half, cam, width, height)
         ent, pix = sort_pairs_by_pixel(ent, pix, num_pixels)
-    return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width, kernels)
+    return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width)
 
 
 def sh_colors(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
@@ -313,10 +290,6 @@ def sh_colors(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
 @register("rasterizer", "torch_ref")
 class TorchRefRasterizer(Rasterizer):
     """Pure-PyTorch rasterizer: any device, float32 or float64, differentiable in every Gaussian tensor."""
-
-    def __init__(self, compile: bool = False) -> None:
-        self.compile = compile
-        self._kernels = Kernels.compiled() if compile else Kernels()
 
     def render(
         self,
@@ -420,8 +393,7 @@ class TorchRefRasterizer(Rasterizer):
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The depth-ordered entries -> per pixel of the stacked cameras (rgb sum [CHW, 3], T_final [CHW], depth
         [CHW]), differentiable; a subclass may replace it (`numba` does, with compiled loops on the CPU)."""
-        return composite(means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height,
-                         self._kernels)  # fmt: skip
+        return composite(means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height)
 
     @torch.no_grad()
     def blend_weights(
