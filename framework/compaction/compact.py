@@ -41,15 +41,13 @@ from framework.scene.auto import group_option
 
 CHECK_FRAMES = 12  # training frames (one view each) every image-checked compaction step renders
 DEFAULT_REFIT_STEPS = 1500
-"""Steps of the refit after pruning (`framework.compaction.refit`): 90-115 s on 2 CPU cores at the CPU profile's 128 px.
-After the CPU profile's 4000 steps, 1500 steps against 300 gained 0.05-0.14 dB on three walking seeds (all three then
-within 0.3 dB of paper_full) and 0.05-0.10 dB on two glossy ones, and moved two near-static models by -0.04 to
-+0.05 dB (docs/results/scene_adaptive.md, "The refit's default"). `conf/prune.yaml` and `conf/export.yaml` repeat it."""
+"""Steps of the refit after pruning (`framework.compaction.refit`): long enough that the pruned models of the studio
+scenes stay within the 0.3 dB budget (docs/results/scene_adaptive.md). `conf/prune.yaml` and `conf/export.yaml`
+repeat it."""
 DEFAULT_PRUNE_TOLERANCE = 0.03
 """RMS colour (over the avatar's pixels of the checked training frames) that pruning may reach when the refit
-follows. On five 600-step studio models it left 29-49 % fewer Gaussians than 0.7/255 without a refit, at a PSNR
-0.07-0.19 dB higher on four and 0.12 / 0.22 dB lower on walking. On converged (4000-step) models it costs 0.1-0.25 dB
-against the unpruned model (docs/results/scene_adaptive.md, "The full schedule")."""
+follows: the refit recovers what a deeper prune loses, so it prunes further than `NO_REFIT_PRUNE_TOLERANCE`
+(measured trade: docs/results/scene_adaptive.md)."""
 NO_REFIT_PRUNE_TOLERANCE = 0.7 * DEFAULT_FOLD_TOLERANCE
 """The tolerance `"auto"` means with `refit_steps=0`: nothing repairs what pruning changes, so it stays small, and the
 rest of the fold tolerance is left to a partial F_a fold, checked against the same original renders."""

@@ -13,9 +13,8 @@ compaction uses is the mean squared blending weight over the pixels a Gaussian c
 removing it changes each of those pixels by about its weight times a colour difference, so the sum of squares is the
 image change and the pair count is what it costs every frame to draw. Ranked by that ratio, a large, faint Gaussian
 (hundreds of pairs, a little colour each) goes before a small one that is the only thing covering its few pixels;
-ranked by the largest weight alone, the other way round. Measured on the studio's walking scene (600 steps, seeds 0
-and 1): at the same tolerance the ratio keeps 12-14 % fewer Gaussians; matched in frame rate it rendered the held-out
-views up to 0.17 dB closer, matched in PSNR it was 0.05x faster (`docs/results/scene_adaptive.md`).
+ranked by the largest weight alone, the other way round. At the same tolerance the ratio keeps fewer Gaussians
+(`docs/results/scene_adaptive.md`).
 
 SH bands: band l of a Gaussian changes its colour by an amount whose root mean square over all view directions is
 sqrt(sum_m c_lm^2 / 4 pi) per channel (real SH are orthonormal on the sphere). Bands are dropped from the top while
