@@ -64,3 +64,16 @@ def with_fitted_betas(body_node: DictConfig | dict[str, Any] | None, betas: list
     if betas is None or "betas" not in node or node["betas"] is not None:
         return node
     return {**node, "betas": [float(b) for b in betas]}
+
+
+SPLIT_OVERRIDES = "split_overrides"
+
+
+def build_split(data_cfg: DictConfig | dict[str, Any], split: str) -> Any:
+    """The dataset of one split from a run's `data` config. `data.split_overrides` maps a split to dataset keys that
+    differ for it alone: `{train: {downscale: 2}}` trains on half-size images and evaluates on the full-size ones, so
+    every run of a comparison is measured against the same ground truth."""
+    name, node = node_kwargs(data_cfg)
+    node["name"] = name
+    overrides = (node.pop(SPLIT_OVERRIDES, None) or {}).get(split) or {}
+    return build_component("dataset", {**node, **overrides}, group="data", split=split)

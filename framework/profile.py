@@ -18,13 +18,13 @@ from framework.errors import reported_as_message
 
 
 def run(cfg: DictConfig) -> None:
-    from framework.build import build_component
+    from framework.build import build_split
     from framework.plugins import load_plugins
     from framework.scene.auto import choose
     from framework.scene.profile import cached_profile, profile_body
 
     load_plugins()
-    dataset = build_component("dataset", cfg.data, group="data", split="train")
+    dataset = build_split(cfg.data, "train")
     body = profile_body(cfg.body, dataset)
     s = cfg.scene
     profile, path, cached = cached_profile(dataset, body, max_frames=int(s.max_frames), blur_px=float(s.blur_px),

@@ -5,6 +5,7 @@ Prints where the run's results are and returns the configured metric so Hydra sw
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import time
@@ -128,7 +129,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from framework.build import build_component
+    from framework.build import build_split
     from framework.config_checks import check_train_config
     from framework.evaluate import evaluate_module
     from framework.evaluation.run_cost import run_cost
@@ -155,11 +156,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
 
-    def build_split(split: str):
-        return build_component("dataset", cfg.data, group="data", split=split)
-
     dm = FrameDataModule(
-        build_split,
+        functools.partial(build_split, cfg.data),
         val_split=str(cfg.eval.val_split),
         val_max_items=int(cfg.eval.val_max_items),
         num_workers=int(cfg.data_loader.num_workers),

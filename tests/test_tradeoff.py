@@ -186,11 +186,11 @@ KNOBS = {
     "fdw_off": {"deformer."},
     "raster_jax": {"rasterizer."},
     "raster_gsplat": {"rasterizer."},
-    "resolution_half": {"data.resolution"},
+    "resolution_half": {"data.split_overrides."},
     "steps_half": SCHEDULE,
     "preset_realtime": {"corrector.", "gaussians.sh_degree", *BUDGET},
     "preset_small": {"gaussians.sh_degree", *BUDGET},
-    "preset_quick": {"deformer.", "data.resolution", *SCHEDULE},
+    "preset_quick": {"deformer.", "data.split_overrides.", *SCHEDULE},
 }
 
 
@@ -235,7 +235,7 @@ def test_each_point_changes_exactly_its_knob(point: str, profile: str) -> None:
         "gaussians_half": ("gaussians.num", p.num_gaussians // 2),
         "gaussians_quarter": ("densifier.max_gaussians", p.max_gaussians // 4),
         "gaussians_double": ("gaussians.num", 2 * p.num_gaussians),
-        "resolution_half": ("data.resolution", p.resolution // 2),
+        "resolution_half": ("data.split_overrides.train.downscale", 2),
         "steps_half": ("trainer.max_steps", p.max_steps // 2),
         "sh1": ("gaussians.sh_degree", 1),
     }
@@ -253,3 +253,27 @@ def test_baseline_is_paper_full() -> None:
     assert base.task_name == "tradeoff_baseline"
     base.task_name = direct.task_name
     assert base == direct
+
+
+def test_resolution_half_trains_small_and_evaluates_on_the_full_size_images(tmp_path, monkeypatch) -> None:
+    """Every point is measured against the same ground truth: only the training split is downscaled."""
+    from framework.build import build_split
+
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path))
+    with initialize_config_module("framework.conf", version_base="1.3"):
+        cfg = compose(
+            "tradeoff",
+            overrides=[
+                "+tradeoff=resolution_half",
+                "profile=cpu",
+                "profile.resolution=32",
+                "profile.num_views=4",
+                "profile.num_frames=6",
+                "data.supersample=1",
+            ],
+        )
+    train, held_out = build_split(cfg.data, "train"), build_split(cfg.data, "novel_view")
+    full = OmegaConf.select(cfg, "data.resolution")
+    assert train[0].image.shape[-3:-1] == (full // 2, full // 2)
+    assert held_out[0].image.shape[-3:-1] == (full, full)
+    assert train[0].cameras.K[..., 0, 0] * 2 == pytest.approx(float(held_out[0].cameras.K[..., 0, 0]), rel=1e-6)

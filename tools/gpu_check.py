@@ -193,13 +193,13 @@ def prepare_data(overrides: list[str]) -> int:
     sys.path.insert(0, str(ROOT / "tools"))
     from bench_train import compose
 
-    from framework.build import build_component
+    from framework.build import build_split
     from framework.plugins import load_plugins
 
     load_plugins()
     cfg = compose(overrides)
     t = time.monotonic()
-    ds = build_component("dataset", cfg.data, group="data", split="train")
+    ds = build_split(cfg.data, "train")
     print(f"studio ready: {len(ds)} training images in {time.monotonic() - t:.1f} s")
     return 0
 

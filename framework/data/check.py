@@ -74,7 +74,7 @@ def run(cfg: DictConfig) -> int:
     from omegaconf.errors import MissingMandatoryValue
     from tqdm import tqdm
 
-    from framework.build import build_component, with_fitted_betas
+    from framework.build import build_component, build_split, with_fitted_betas
     from framework.data.calibration_check import Rig, diagnose, project, score
     from framework.data.overlay import render_tile, write_png
     from framework.data.sequence_dataset import SequenceDataset
@@ -86,7 +86,7 @@ def run(cfg: DictConfig) -> int:
         body_node = OmegaConf.to_container(cfg.body, resolve=True, throw_on_missing=True)
     except MissingMandatoryValue as exc:
         raise SplatrigError(f"{exc.full_key} is not set: pass {exc.full_key}=/path/to/your/capture") from None
-    ds = build_component("dataset", data, group="data", split="train")
+    ds = build_split(data, "train")
     if not isinstance(ds, SequenceDataset):
         raise SplatrigError(f"data={data['name']}: the check reads calibrated captures (easymocap, zju_mocap, "
                             f"synthetic_studio); '{data['name']}' is not one")  # fmt: skip

@@ -7,6 +7,7 @@ share this module, so a checkpoint that loads for one loads for all, and a bad o
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 from framework.errors import SplatrigError
@@ -59,15 +60,11 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
 
 def datamodule_for(module):
     """The splits of the dataset the module was trained on (rebuilt from its stored config)."""
-    from framework.build import build_component
+    from framework.build import build_split
     from framework.lightning.data import FrameDataModule
 
     cfg = module.cfg
-
-    def build_split(split: str):
-        return build_component("dataset", cfg["data"], group="data", split=split)
-
-    return FrameDataModule(build_split, val_split=cfg["eval"]["val_split"])
+    return FrameDataModule(functools.partial(build_split, cfg["data"]), val_split=cfg["eval"]["val_split"])
 
 
 def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
