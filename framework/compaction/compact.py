@@ -36,6 +36,7 @@ from framework.errors import SplatrigError
 from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps, timing_split
 from framework.lightning.data import collate_frames
 from framework.lightning.trained_model import datamodule_for, interleaved_fps, load_module
+from framework.paths import DEMO, beside_checkpoint, checkpoint_file
 from framework.runtime import default_device
 from framework.scene.auto import group_option
 
@@ -370,8 +371,11 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     if prune_rounds < 1:
         raise SplatrigError(f"prune_rounds={prune_rounds}: expected 1 or more (1: prune once, then refit).")
     prune_tolerance = resolve_prune_tolerance(prune_tolerance, refit_steps)
-    ckpt_path = Path(ckpt_path)
-    out = Path(out_path) if out_path else ckpt_path.with_name(f"{ckpt_path.stem}.pruned.ckpt")
+    shipped = str(ckpt_path) == DEMO  # the packaged demo: its compact copy goes to outputs/, not into the package
+    ckpt_path = checkpoint_file(ckpt_path)
+    default_out = beside_checkpoint(DEMO, "prune") if shipped else ckpt_path.parent
+    out = Path(out_path) if out_path else default_out / f"{ckpt_path.stem}.pruned.ckpt"
+    out.parent.mkdir(parents=True, exist_ok=True)
     if out.resolve() == ckpt_path.resolve():
         raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
     device = device or default_device()

@@ -17,6 +17,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from framework.atomic import atomic_path, remove_stale_temporaries
 from framework.errors import SplatrigError
+from framework.paths import checkpoint_file
 
 
 class CheckpointError(SplatrigError):
@@ -24,8 +25,9 @@ class CheckpointError(SplatrigError):
 
 
 def read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", what: str = "ckpt") -> dict[str, Any]:
-    """torch.load of a splatrig checkpoint; any failure is a CheckpointError naming the file and the fix."""
-    path = Path(path)
+    """torch.load of a splatrig checkpoint (`demo`: the shipped avatar); any failure is a CheckpointError naming the
+    file and the fix."""
+    path = checkpoint_file(path)
     if not path.is_file():
         raise CheckpointError(f"{what}={path}: no such checkpoint file; point it at a run's checkpoints/last.ckpt "
                               f"(or final.ckpt).")  # fmt: skip

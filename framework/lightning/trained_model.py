@@ -47,7 +47,7 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
         module.cfg = module.hparams["cfg"] = cfg
     module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage
     try:
-        module.load_state_dict(checkpoint["state_dict"])
+        module.load_state_dict(with_body_buffers(checkpoint["state_dict"], module))
     except RuntimeError as exc:
         lines = str(exc).strip().splitlines()
         detail = lines[min(1, len(lines) - 1)].strip()
@@ -56,6 +56,17 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
             f"incompatible version of splatrig or edited. Train it again."
         ) from None
     return module.to(device).eval()
+
+
+BODY_PREFIX = "avatar.body."
+
+
+def with_body_buffers(state: dict, module) -> dict:
+    """A checkpoint may leave out the body model's buffers (vertices, faces, skin weights: `tools/make_demo_avatar.py`
+    does, to keep the shipped avatar small): they are a function of the body config, which the module has just been
+    built from, so its own copies stand in for them. Every other missing key is still an error."""
+    own = {k: v for k, v in module.state_dict().items() if k.startswith(BODY_PREFIX) and k not in state}
+    return {**state, **own} if own else state
 
 
 def datamodule_for(module):
