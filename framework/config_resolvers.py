@@ -8,11 +8,15 @@ profile declares every milestone (stage switch, densification window and interva
 validation) as a fraction of its `max_steps` in its `schedule:` block (conf/profile/*.yaml), and paper_full turns
 them into steps with this resolver, so `profile.max_steps=N` alone moves all of them together. FRACTION may be a
 number (0.25) or a ratio string ("5000/30000", the paper's own numbers); it is computed exactly (no float drift).
+
+`${run_dir:NEW,CKPT}` is the run folder of a training command: the folder of the run whose
+`<run>/checkpoints/<file>` CKPT resumes (so a resumed run continues in its own folder), else NEW.
 """
 
 from __future__ import annotations
 
 from fractions import Fraction
+from pathlib import Path
 
 from omegaconf import OmegaConf
 
@@ -47,9 +51,19 @@ def steps(value: int | float | str, total: int | float) -> int:
     return max(out, 1) if f > 0 and total > 0 else out
 
 
+def run_dir(new: str, ckpt: str | None = None, older_name: str | None = None) -> str:
+    """The resumed run's folder when CKPT (or its older name, ckpt_path) is a run's checkpoint file, else NEW."""
+    ckpt = ckpt or older_name
+    if ckpt:
+        path = Path(str(ckpt)).expanduser()
+        if path.is_file() and path.parent.name == "checkpoints":
+            return str(path.resolve().parent.parent)
+    return new
+
+
 def register() -> None:
     """Idempotent: safe to call from every entry point and test."""
-    for name, fn in (("scaled", scaled), ("steps", steps)):
+    for name, fn in (("scaled", scaled), ("steps", steps), ("run_dir", run_dir)):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, fn)
 

@@ -147,6 +147,8 @@ def test_kill_during_a_checkpoint_write_then_resume_matches_an_uninterrupted_run
 
     proc = _train(killed, "trainer.max_steps=60", f"ckpt={ckpt_dir / 'last.ckpt'}", cache=cache)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    assert len(_run_dirs(killed)) == 1  # the resumed run continued in its own folder
+    assert "not resumable" not in proc.stderr  # the loader's state (seed, position) went into the checkpoint
     resumed_dir = _run_dirs(killed)[-1]
     final = _load(resumed_dir / "checkpoints" / "last.ckpt")
     reference = _load(_run_dirs(whole)[-1] / "checkpoints" / "last.ckpt")

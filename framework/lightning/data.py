@@ -8,6 +8,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Sampler
 
+from framework.errors import SplatrigError
 from framework.interfaces import MultiViewDataset
 from framework.types import Cameras, FrameBatch
 
@@ -66,6 +67,25 @@ class StepSampler(Sampler[int]):
         return self.num_samples if self.n else 0
 
 
+class StepLoader(DataLoader):
+    """The training loader: its position is the trainer's step (`StepSampler`), so its resumable state is the
+    sampler's seed and that step. Lightning saves it in every checkpoint and hands it back on resume; a checkpoint of
+    another frame order (another seed or dataset size) is refused rather than continued silently."""
+
+    def state_dict(self) -> dict[str, int]:
+        sampler = self.sampler
+        return {"seed": int(sampler.seed), "items": int(sampler.n), "step": int(sampler.start())}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        sampler = self.sampler
+        if (state.get("seed"), state.get("items")) != (sampler.seed, sampler.n):
+            raise SplatrigError(
+                f"resume: the checkpoint's frame order (seed {state.get('seed')}, {state.get('items')} training "
+                f"images) is not this run's (seed {sampler.seed}, {sampler.n}); resume with the first run's seed and "
+                f"data overrides."
+            )
+
+
 class FrameDataModule(L.LightningDataModule):
     """Holds already-built split datasets; the model needs the train split's metadata before the trainer starts."""
 
@@ -95,7 +115,8 @@ class FrameDataModule(L.LightningDataModule):
         return self.split("train")
 
     def _loader(self, dataset: torch.utils.data.Dataset, sampler=None, shuffle: bool = False) -> DataLoader:
-        return DataLoader(
+        loader = StepLoader if isinstance(sampler, StepSampler) else DataLoader
+        return loader(
             dataset,
             batch_size=1,
             sampler=sampler,
