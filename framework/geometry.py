@@ -13,9 +13,9 @@ from framework.runtime import cpu_float
 def _normalize_with_norm(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> tuple[Tensor, Tensor]:
     """(q / |q|, |q| with `dim` kept) of quaternions along `dim`; one below eps maps to the identity rather than NaN.
 
-    |q| as the root of the clamped sum of squares: `Tensor.norm` over a 4-wide dimension took 0.12 ms (row-major) and
-    0.84 ms (component-major) at 8k quaternions, this 0.01-0.02 ms (2-core CPU); the clamp at eps^2 (below the
-    threshold) keeps the root's slope finite at zero, where the gradient is then exactly zero."""
+    |q| as the root of the clamped sum of squares, an order of magnitude faster than `Tensor.norm` over a 4-wide
+    dimension in either layout; the clamp at eps^2 (below the threshold) keeps the root's slope finite at zero, where
+    the gradient is then exactly zero."""
     norm = q.square().sum(dim, keepdim=True).clamp_min(eps * eps).sqrt()
     identity = constant_on(IDENTITY_QUAT, q.device, q.dtype)  # [4], broadcast (no zeros_like, select and fill)
     identity = identity if dim in (-1, q.dim() - 1) else identity.view(4, *([1] * (q.dim() - 1 - (dim % q.dim()))))
@@ -96,9 +96,8 @@ def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Te
 
     Why: four kernels each way (outer product, gather, scale, sum) where the entry-by-entry formulas issue one kernel
     per product and sum, ~25-40 forward and as many backward. A GPU pays a launch for every kernel, and a training step
-    is made of ~1700 small ones (tools/count_syncs.py), so the accelerators take this form; a CPU runs the
-    entry-by-entry one faster (`quat_to_rotmat` as a gathered outer product: 0.72 against 0.55 ms forward+backward at
-    8k on a 2-core CPU). Element-wise products and sums only, so no matrix product rounds to TF32."""
+    is made of many small ones (tools/count_syncs.py), so the accelerators take this form; a CPU runs the
+    entry-by-entry one faster. Element-wise products and sums only, so no matrix product rounds to TF32."""
     index, coef = constant_on(index, a.device), constant_on(coef, a.device, a.dtype)
     if dim == 0:  # [4, N] -> [len, N]
         outer = (a.unsqueeze(1) * b.unsqueeze(0)).flatten(0, 1)  # [16, N]
@@ -117,9 +116,8 @@ def few_kernels(t: Tensor) -> bool:
 
 class _QuatToRotmat(torch.autograd.Function):
     """quat_to_rotmat with a closed-form backward, because every rasterizer projection and LBS step runs it on all
-    Gaussians. Autograd through its ~40 elementwise ops made forward+backward 3.5 ms at 8k quaternions and 7.4 ms at
-    30k on CPU (interleaved medians); this takes 2.7 and 5.7 ms. tests/test_geometry.py checks it against an
-    independent (Rodrigues) construction and against finite differences.
+    Gaussians, and autograd through its ~40 elementwise ops is slower (docs/results/speed.md). tests/test_geometry.py
+    checks it against an independent (Rodrigues) construction and against finite differences.
 
     `dim` is where the four components sit: -1 for [..., 4] -> [..., 3, 3]; 0 for component-major [4, N] -> entry-major
     [9, N] (row 3i + j = entry (i, j)), the layout the projection and the LBS compute in."""
@@ -229,7 +227,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
 
 def _argmax_of_four(v: Tensor) -> Tensor:
     """argmax over the first four rows of v [>= 4, M] (the first on ties) by three comparisons: torch's argmax over
-    four values took 0.9 ms at 8k columns in either layout, these few vector operations 0.06 ms (2-core CPU)."""
+    a 4-long dimension is an order of magnitude slower than these few vector operations."""
     first, m01 = (v[1] > v[0]).long(), torch.maximum(v[0], v[1])
     second, m23 = (v[3] > v[2]).long() + 2, torch.maximum(v[2], v[3])
     return torch.where(m23 > m01, second, first)
@@ -241,9 +239,8 @@ def rotmat_to_quat_entry_major(R: Tensor) -> Tensor:
     Of the four rows of 4 q q^T that R gives linearly, it takes the one with the largest diagonal entry 4 q_k^2 >= 1
     (the best-conditioned formula, as pytorch3d) and normalises it: no square root and no division by a small number,
     so values and gradients stay finite for every rotation, 180 degrees included. One product and one gather instead of
-    sixteen stacked candidate entries: at 8k float32 rotations 0.8 against 1.6 ms forward and 2.0-3.1 against 6.4-8.4 ms
-    forward+backward (2-core CPU VM, medians, old and new alternated); values and gradients equal the sixteen-entry
-    form's to 1e-15 in float64."""
+    sixteen stacked candidate entries (about twice as fast, three times with the backward); values and gradients equal
+    the sixteen-entry form's to 1e-15 in float64."""
     offset, mix = (constant_on(t, R.device, R.dtype) for t in (_ROTMAT_QUAT_OFFSET, _ROTMAT_QUAT_MIX))
     vals = torch.addmm(offset[:, None], mix.t(), R)  # [10, M]
     best = _argmax_of_four(vals)  # [M]

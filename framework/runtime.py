@@ -27,8 +27,8 @@ _TRIM_THRESHOLD = 2**31 - 1
 
 def reuse_freed_memory() -> bool:
     """Serve blocks up to 32 MB from the heap and never trim it (glibc), so a tensor freed in one training step is
-    reused by the next instead of being unmapped and faulted in again page by page: measured 12-16k fewer page faults
-    per torch_ref forward+backward at 30k@256 and 5-10 % shorter medians on a 2-core VM. Peak memory is unchanged;
+    reused by the next instead of being unmapped and faulted in again page by page (fewer page faults, shorter steps:
+    docs/results/speed.md). Peak memory is unchanged;
     the process keeps its high-water mark instead of returning it between steps.
 
     `SPLATRIG_MALLOC=system` in the environment keeps glibc's defaults. Returns whether the setting was applied
@@ -89,8 +89,8 @@ def cpu_threads(threads: int | None, device: torch.device) -> Iterator[None]:
 
     Why: the training entry point makes OpenMP's idle threads sleep (`OMP_WAIT_POLICY=PASSIVE`, so they do not starve
     the compiled loops' pool), and then every parallel operator pays for waking them. For the step's small work that
-    costs more than the second thread gives: fused Adam over the CPU model's ~25 tensors took 2.1-2.5 ms on 2 threads
-    and 1.1 ms on 1 at 8k Gaussians, and was no faster on 2 up to 128k (2-core VM). The training step runs its losses,
+    costs more than the second thread gives (fused Adam over the CPU model's ~25 tensors is about twice as fast on one
+    thread, and no faster on two at 16x the Gaussians). The training step runs its losses,
     optimizer, checks and densifier bookkeeping in this block (`small_work_threads`). Setting the count costs well
     under a microsecond, and element-wise results do not depend on it."""
     current = torch.get_num_threads()

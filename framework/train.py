@@ -10,8 +10,8 @@ import os
 import sys
 import time
 
-# torch's OpenMP threads spin-wait by default; on a busy 2-core machine that starves the other thread (measured 3-10x
-# slower steps). Must be set before torch is imported; an explicit user setting wins.
+# torch's OpenMP threads spin-wait by default; on a busy machine with few cores that starves the other threads (steps
+# several times slower). Must be set before torch is imported; an explicit user setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from pathlib import Path
 from typing import Any

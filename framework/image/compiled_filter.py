@@ -3,10 +3,9 @@ of `framework.image.compiled_ssim`.
 
 Why: the D-SSIM term filters five moment maps of the render (`framework.image.ssim.ssim_map`) with an 11-tap window
 along each axis. Through `kornia.filters.filter2d_separable` that is a reflection pad and a depthwise convolution per
-axis, on one core: 0.7 ms forward and 4.0 ms forward+backward for the fifteen 128 x 128 planes of a CPU training step
-(the convolution's backward alone 1.4 ms a call; 2-core AVX-512 VM, medians). The arithmetic is 22 multiply-adds per
-pixel and plane each way. Here each axis is one loop over whole rows that the compiler vectorises (0.3 ms a pass over
-the fifteen planes on one core), and the border columns and rows index the mirror directly.
+axis, whose backward dominates a CPU training step's D-SSIM. The arithmetic is 22 multiply-adds per pixel and plane
+each way. Here each axis is one loop over whole rows that the compiler vectorises, and the border columns and rows
+index the mirror directly.
 
 Same definition as kornia's: correlation along W first, then along H, each with torch's 'reflect' border (mirrored
 about the edge pixel, which is not repeated: index -1 reads 1). The backward is the exact adjoint: the same taps

@@ -1,7 +1,7 @@
 """`framework.image.ssim.ssim_map` as compiled loops (numba) with a hand-written backward, for CPU training steps.
 
-Why: after its filter was compiled (`framework.image.compiled_filter`), the D-SSIM term of a 128 x 128 CPU step still
-cost some 3 ms forward+backward in about seventy torch operations over [1, 3, 128, 128] maps: the five moments, the
+Why: after its filter was compiled (`framework.image.compiled_filter`), the D-SSIM term of a CPU step was still
+about seventy torch operations over [1, 3, H, W] maps: the five moments, the
 means' and variances' combination, and their gradients, each a pass of its own with its dispatch. Per pixel that is
 a few dozen flops. Here each image plane's moments, filter, map and, backward, the map's gradient to the five filtered
 moments, the filter's adjoint and the chain rule to both images are loops over that plane; the planes are split

@@ -4,10 +4,9 @@
 convolutions of three channels each, and as many in the backward. Here the five maps are stacked along the channels and
 go through `kornia.filters.filter2d_separable` once (same kernel, same reflected borders, same combination), so the
 training step pays for two convolutions of fifteen channels. The values equal kornia's (tested in float64, with
-gradients). In `tools/bench_train.py` (paper_full, 128 x 128) the loss's forward went from 8.7-10.3 ms to 4.5-5.2 ms per
-step. On the CPU the whole map, forward and backward, is compiled loops (`framework.image.compiled_ssim`: the same
-moments, filter, borders and combination). Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU path is
-already channels-last.
+gradients), at about half the loss's forward time of the per-moment form (`tools/bench_train.py`). On the CPU the whole
+map, forward and backward, is compiled loops (`framework.image.compiled_ssim`: the same moments, filter, borders and
+combination). Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU path is already channels-last.
 """
 
 from __future__ import annotations

@@ -204,8 +204,8 @@ class Avatar(nn.Module):
 
     def forward(self, batch: FrameBatch, sh_degree: int) -> AvatarOutput:
         """Render the batch's cameras. For one camera the SH rotation is deferred: the colour is evaluated at
-        R^T d per Gaussian and handed to the rasterizer as a degree-0 coefficient (the same colour, measured ~10 ms
-        cheaper per 8k Gaussians at degree 3 on CPU); `posed` in the output then still has canonical SH."""
+        R^T d per Gaussian and handed to the rasterizer as a degree-0 coefficient (the same colour, cheaper than
+        rotating every SH band); `posed` in the output then still has canonical SH."""
         canonical, posed, aux, frames = self._pose(batch, sh_degree, defer_sh=batch.cameras.num == 1)
         sh, degree = posed.sh, sh_degree
         if frames is not None:

@@ -3,7 +3,7 @@
 (`lbs_with_sh_frames_trainable`).
 
 Why: once the rasterizer runs compiled (`rasterizer=numba`), the skinning is the largest part of a CPU novel-pose
-frame. On the walking avatars at 128² it took 3.8-5.8 ms. About half of that is fixed: some 600 small tensor
+frame, and about half of it is fixed: some 600 small tensor
 operations (the blend, the polar iteration, the quaternions and the stretch), whatever the Gaussian count. Per
 Gaussian the work is a 12-wide blend and a few 3x3 products, which one pass does without per-operation overhead. For
 inference the blend is one float64 matrix product when every bone transform is finite, the loop over the non-zero
@@ -27,8 +27,8 @@ Training: the blend stays torch's matrix product (`blended_affine`, whose backwa
 transforms); `skin_affine_forward` poses each Gaussian from its blended A and t as above, and `skin_affine_backward`
 carries the outputs' gradients back through the stretch, the quaternion product, R's quaternion (the row the forward
 took), the centres and the polar decomposition (the closed form of `framework.rig.polar`, per matrix) to A, t, the
-means and the quaternions. In a stage-2 step the torch path ran some 300 small operations each way over 8k Gaussians:
-22 ms forward+backward against 9 ms for these loops on two threads (2-core VM, medians).
+means and the quaternions. In a stage-2 step the torch path runs some 300 small operations each way, about twice
+these loops' time (docs/results/speed.md).
 `tests/test_compiled_skinning_grad.py` checks values and gradients against the torch path in float64 and by finite
 differences.
 """
@@ -483,8 +483,8 @@ def lbs_with_sh_frames_compiled(gaussians, weights, transforms, stretch: str = "
     """`framework.rig.lbs.lbs_with_sh_frames` (posed Gaussians with canonical SH, R [N, 3, 3]) through
     `skin_affine_forward`: no gradients, CPU tensors; results in the Gaussians' dtype.
 
-    The blend is one float64 matrix product when every bone transform is finite (0.35 ms less than the loop for the
-    trained default avatar's 6k Gaussians and 22 joints), and `blend_skipping_zeros` otherwise (module docstring)."""
+    The blend is one float64 matrix product when every bone transform is finite (faster than the loop), and
+    `blend_skipping_zeros` otherwise (module docstring)."""
     from framework.rig.lbs import blended_affine
     from framework.splat.compiled_cpu import float64_array as f64
 

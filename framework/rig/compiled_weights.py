@@ -2,8 +2,8 @@
 
 Why: in a training step the deformer looks up the weight grid at seven points per Gaussian (the centre and the six
 L_w points x +- s_l a_l), combines the grid weights with F_dw's residual and takes the standard deviation over the six
-points. In torch that is some forty operations over [N, 7, J] tensors each way: on a trained model's 8000 Gaussians
-(22 joints, a 64^3 grid) 15-23 ms forward and 22-34 ms forward+backward, more than the compiled rasterizer. Per
+points. In torch that is some forty operations over [N, 7, J] tensors each way, more than the compiled rasterizer
+takes. Per
 point the work is eight grid rows, a weighted sum over J and a few sums, which one pass does on both cores.
 
 The same rules as the torch path, in float64 (the grid rows are float32 data):

@@ -48,7 +48,7 @@ def fold_weights(weights: Tensor, to_kept: list[int] | Tensor, num_kept: int) ->
     index = torch.as_tensor(to_kept, dtype=torch.long, device=weights.device)
     # a product with the [J, K] 0/1 fold matrix: the sums of `index_add` (to float rounding: each term is a weight
     # times 1 or an exact 0), as one GEMM forward and backward, where `index_add` over the last dimension is a strided
-    # scatter (about 7 of the 89 ms of L_w's forward+backward on 10k Gaussians with frozen joints and F_dw)
+    # scatter (a visible share of L_w's forward+backward with frozen joints and F_dw)
     matrix = weights.new_zeros(index.shape[0], num_kept)
     matrix[torch.arange(index.shape[0], device=weights.device), index] = 1.0
     return weights @ matrix

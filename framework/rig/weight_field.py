@@ -10,10 +10,10 @@ the skin moves with the nearest skin. The grid is computed once per (body, box, 
 Sampling reads a channels-last copy of the volume ([R^3, J], each row one node's J weights, contiguous) with one
 `embedding_bag` call: each point is four bags of its 8 corner rows, weighted by the trilinear weights and by their
 derivatives along x, y and z, so the forward returns the value and keeps the three derivatives, and the backward is one
-[3, J] x [J] product per point. Nothing of size [M, 8, J] is written. In `tools/bench_train.py` (paper_full, 7 x 8k
-points per step) this took the stage-1 backward from 61-69 ms to 50-54 ms, forward unchanged, against a gather of the
-corner rows and three lerps (which itself was 2.3x faster than `F.grid_sample`: that reads the channels-first volume
-with J strided loads per corner; it computes the same values to float rounding, tested). A volume that is a partition of
+[3, J] x [J] product per point. Nothing of size [M, 8, J] is written. In `tools/bench_train.py` this shortens the
+stage-1 backward against a gather of the corner rows and three lerps (which itself is faster than `F.grid_sample`: that
+reads the channels-first volume with J strided loads per corner; it computes the same values to float rounding,
+tested). A volume that is a partition of
 unity (every grid `build_weight_grid` writes) needs no clamp or renormalisation per lookup: trilinear samples are convex
 combinations of its rows.
 """

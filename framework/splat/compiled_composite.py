@@ -6,8 +6,7 @@ loops of `framework.splat.compiled_cpu` visit the pairs once forward (`accumulat
 logs the pairs it added: slot, position, alpha) and replay that log backwards (`accumulate_backward`), so the
 backward touches only the pairs that contributed, and per pixel walks its transmittance back from the final one.
 Everything runs in float64 inside, so float32 renders and gradients are at least as accurate as `torch_ref`'s float32
-ones. 10k random Gaussians at 128²: 11 ms forward and 4 ms backward for the compositing, 32 ms for the whole render
-forward and backward against torch_ref's 73 ms (one-off timing, 2-core VM).
+ones. A whole training render, forward and backward, takes under half of torch_ref's time (docs/results/speed.md).
 
 The colours stay in PyTorch and the projection has its own Function (`framework.splat.compiled_projection`); autograd
 carries the gradients between them, and densification reads `means2d.grad` as before.

@@ -2,11 +2,11 @@
 
 Why: at the resolutions a CPU renders in real time (128-512 px) the eager `torch_ref` frame is mostly per-operation
 overhead. Its projection alone is about 300 small tensor operations and its compositor about a thousand, each a few
-microseconds, however few Gaussians there are (`tools/bench_render.py --scaling`: 4-6 ms of fixed cost per 128²
-frame). A loop compiled once does the same arithmetic without that overhead. It also needs no pair list, no sort
-and no per-pair buffers: the entries are visited in depth order, and each visit updates the transmittance and the
-sums of the pixels its footprint covers. That is front-to-back compositing pixel by pixel, as the contract
-(`framework.interfaces.rasterizer`) defines it, because a pixel sees its entries in the same order either way.
+microseconds, however few Gaussians there are (`tools/bench_render.py --scaling` measures that fixed cost). A loop
+compiled once does the same arithmetic without that overhead. It also needs no pair list, no sort and no per-pair
+buffers: the entries are visited in depth order, and each visit updates the transmittance and the sums of the pixels its
+footprint covers. That is front-to-back compositing pixel by pixel, as the contract (`framework.interfaces.rasterizer`)
+defines it, because a pixel sees its entries in the same order either way.
 
 Training renders use the same loops with hand-written backward passes (`project_backward`, `accumulate_backward`;
 the autograd Functions are `framework.splat.compiled_projection` and `framework.splat.compiled_composite`).
@@ -292,11 +292,10 @@ def accumulate(order, base_row, means2d, conics, opacities, colors, depths, half
 
     Finished pixels are skipped without being visited: each row keeps, per slot, a link towards the next pixel that
     is still open (the slot W past the row's end is never finished), so a span costs its open pixels, not its width.
-    Where the footprints pile up (opaque surfaces, large Gaussians) most pairs fall on finished pixels: 30k random
-    Gaussians of about 20 px radius at 256² measured 119 ms when every pair was visited, 51 ms this way.
+    Where the footprints pile up (opaque surfaces, large Gaussians) most pairs fall on finished pixels, so this more
+    than halves a frame of large Gaussians.
 
-    One thread: two threads on interleaved rows measured no faster on a 2-core VM (walking avatar frames at 128-512²,
-    the two alternated: 4.6 against 4.6 ms at 128², 8.2 against 9.5 ms at 512²)."""
+    One thread: two threads on interleaved rows measured no faster (docs/results/speed.md)."""
     stride = width + 1
     skip = np.arange(T.shape[0])  # skip[i] == i: open (or the row's end slot); else a link further right
     capacity = log_slot.shape[0]
@@ -418,8 +417,7 @@ def slots_to_pixels(acc, T, width, background, rgb, trans, depth, as_alpha) -> N
     """The compositor's per-slot sums as per-pixel outputs, leaving out each stacked row's end slot: acc [S, 4] (r, g,
     b, z sums) and T [S] with S = rows * (width + 1), background [3] -> rgb [rows * width, 3] (sums + T_final *
     background), trans [rows * width] (T_final, or 1 - T_final with `as_alpha`), depth [rows * width], in the
-    outputs' dtype. In numpy, over the slots' strided views, an image's last pass took 8 ms of a 12 ms 512² frame and
-    the training compositor's copies 2 ms (2-core VM)."""
+    outputs' dtype. Compiled because numpy over the slots' strided views took most of a 512² frame."""
     rows = T.shape[0] // (width + 1)
     b0, b1, b2 = background[0], background[1], background[2]
     for y in range(rows):
@@ -435,7 +433,8 @@ def slots_to_pixels(acc, T, width, background, rgb, trans, depth, as_alpha) -> N
 def pixels_to_slots(g_rgb, g_trans, g_depth, T, width, g_acc, tail) -> None:
     """The per-pixel gradients back on the compositor's slots (the inverse of `slots_to_pixels`): g_acc [S, 4] =
     (dL/drgb, dL/ddepth) and tail [S] = T_final dL/dT_final, zero on each row's end slot. A gradient array of size 0
-    stands for an output that got no gradient. (numpy's zero fills and strided copies took 7.6 ms at 512².)"""
+    stands for an output that got no gradient. (Compiled: numpy's zero fills and strided copies were a large share
+    of a 512² step.)"""
     rows = T.shape[0] // (width + 1)
     for y in range(rows):
         for x in range(width + 1):

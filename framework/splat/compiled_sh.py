@@ -1,17 +1,17 @@
 """`framework.splat.sh.view_colour_dc` and the rasterizer's SH colours as compiled loops over the Gaussians (numba) on
 the CPU; the view colour also with a hand-written backward, for training steps.
 
-Why: a frame renders one camera, so the avatar hands the rasterizer each Gaussian's colour towards it, evaluated at
-R^T d in the Gaussian's skinning frame (`Avatar.forward`). In torch that is some 40 operations over [N] and
-[N, 16, 3] tensors: about 1 ms of a 512² CPU frame of the trained default avatar (6375 Gaussians, degree 3), in its
-novel views as in its novel poses. Per Gaussian the work is a 3x3 product, a normalisation, 16 basis values and a
-[16] x [16, 3] product, which one pass does without per-operation overhead. The numba rasterizer's own colours (SH
-of degree > 0 handed to it: static scenes, several cameras at once) are the same loop without the frame.
+Why: a frame renders one camera, so the avatar hands the rasterizer each Gaussian's colour towards it, evaluated at R^T
+d in the Gaussian's skinning frame (`Avatar.forward`). In torch that is some 40 operations over [N] and [N, 16, 3]
+tensors, a visible share of a CPU frame, in novel views as in novel poses. Per Gaussian the work is a 3x3 product, a
+normalisation, 16 basis values and a [16] x [16, 3] product, which one pass does without per-operation overhead. The
+numba rasterizer's own colours (SH of degree > 0 handed to it: static scenes, several cameras at once) are the same loop
+without the frame.
 
-A training step pays the torch path forward and backward: 1.1-1.3 + 2.0-2.1 ms at 8000 Gaussians of degree 3, against
-0.5 + 0.8-1.1 ms compiled (2-core AVX-512 VM, medians). The backward carries the colour's gradient to the active
-coefficients (the others get zero, as the torch path's slice), through the basis polynomials' slopes and the
-direction's normalisation (none through the length below its floor, as `clamp_min`) to d and to the frame R.
+A training step pays the torch path forward and backward, about twice the compiled loops' time. The backward carries the
+colour's gradient to the active coefficients (the others get zero, as the torch path's slice), through the basis
+polynomials' slopes and the direction's normalisation (none through the length below its floor, as `clamp_min`) to d and
+to the frame R.
 
 The same rules as `framework.splat.sh`: the direction normalised with its length floored at NORM_EPS (a zero
 direction keeps only the constant term), the 3DGS/gsplat constants and signs, the first (degree + 1)^2 coefficients.
@@ -187,9 +187,7 @@ def _view_colour(
 
 class _ViewColour(torch.autograd.Function):
     """(coeffs [N, K, 3], dirs [N, 3], frames [N, 3, 3]) -> [N, 1, 3], differentiable in all three (a training
-    step's, on the CPU). One thread: at 8000 Gaussians, forward+backward took 0.44 + 0.77 ms on the calling thread
-    against 0.65 + 0.95 ms split between two (2-core AVX-512 VM, medians of 36); the hand-off costs more than half
-    the loop saves."""
+    step's, on the CPU). One thread: split between two, the hand-off costs more than half of what the loop saves."""
 
     @staticmethod
     def forward(ctx, coeffs, dirs, frames, degree):  # type: ignore[override]

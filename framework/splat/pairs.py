@@ -73,8 +73,8 @@ def sort_pairs_by_pixel(ent: Tensor, pix: Tensor, num_pixels: int) -> tuple[Tens
     """(entry [P], pixel [P]) -> the same pairs sorted by pixel, depth order kept within each pixel (stable sort).
 
     The CPU sort's cost follows the key width, so the keys are the narrowest integers that hold every pixel index
-    (measured on 707k pairs: int16 8 ms, int32 18 ms, int64 38 ms); the returned indices stay int64 (int32 index
-    tensors made torch's gathers slower)."""
+    (each halving of the width about halves the sort); the returned indices stay int64 (int32 index tensors made
+    torch's gathers slower)."""
     shift = 2**15 if num_pixels <= 2**16 else 0
     key_dtype = torch.int16 if shift else torch.int32 if num_pixels <= 2**31 else torch.int64
     keys, perm = torch.sort((pix - shift).to(key_dtype), stable=True)

@@ -14,11 +14,10 @@ is exactly dL/d(means2d), as densification needs. Tensors cross by DLPack (zero-
 device); float64 inputs run under `jax.enable_x64(True)` so gradient checks are possible; float16/bfloat16 inputs
 are computed in float32 and the outputs cast back. Cameras get no gradient (unlike `torch_ref`).
 
-Where the time goes (2-core CPU, 30k Gaussians at 256x256, ~0.7 M pairs, medians of a noisy shared machine): pair
-list ~40 ms (its int32 stable sort ~6 ms; the rest is enumerating box pixels and the alpha prefilter), compositing
-~50 ms forward + ~40 ms backward (gathers, one segmented scan, three segment sums), projection + SH ~11 ms forward +
-~34 ms backward, DLPack transfers < 0.1 ms (zero-copy both ways on CPU). Compiles: 2-10 s per new shape bucket,
-cached on disk (`compilation_cache`).
+Where the time goes, in order: compositing forward and backward (gathers, one segmented scan, three segment sums),
+the pair list (enumerating box pixels and the alpha prefilter, then an int32 stable sort), projection + SH; DLPack
+transfers are zero-copy both ways on a CPU. Compiles take seconds per new shape bucket and are cached on disk
+(`compilation_cache`). `tools/bench_rasterizers.py` times it beside the other backends.
 
 On a machine with more busy threads than cores, start Python with `OMP_WAIT_POLICY=PASSIVE`: torch's OpenMP
 workers otherwise spin between ops and starve JAX's threads (and each other); we measured 3-10x slower steps for

@@ -16,9 +16,8 @@ An avatar that renders with this backend also poses its Gaussians with compiled 
 towards the camera compiled (`framework.splat.compiled_sh`), so the whole CPU frame but F_a (oneDNN's fused layers)
 and the bone transforms runs compiled.
 
-The first render on a machine compiles the loops: about 5 s for the rasterizer, 9 s more for the skinning and a few
-more for the backward passes on the 2-core VM (measured with a test run beside it). numba caches them in
-`__pycache__`, and a later process loads them in about 1 s, numba's import included.
+The first render on a machine compiles the loops (seconds for the rasterizer, the skinning and the backward passes).
+numba caches them in `__pycache__`, and a later process loads them in about a second, numba's import included.
 """
 
 from __future__ import annotations

@@ -109,8 +109,8 @@ def forward_accumulate(
 
     `pair_cols` [4, P] holds each pair's entry r, g, b, z (gathered once, kept for the backward). The terms are
     contiguous rows added into the pixels' columns by `index_add_` along dim 1. With the pairs sorted by pixel that
-    writes almost sequentially and sums in pair order, like a segment sum, at half the cost of five
-    `segment_reduce` calls (707k pairs into 65k pixels: 8.2 against 12.5 ms; 1.5M into 262k: 17 against 35 ms).
+    writes almost sequentially and sums in pair order, like a segment sum, at about half the cost of five
+    `segment_reduce` calls.
     """
     acc = torch.zeros(5, num_pixels, dtype=T.dtype, device=T.device)
     acc[:4].index_add_(1, pix, torch.mul(pair_cols, T * alpha))
