@@ -26,9 +26,18 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return w2c
 
 
-def orbit_cameras(center: Tensor, radius: float, height: float, num: int, width: int, height_px: int,
-                  fov_deg: float = 40.0, up: tuple[float, float, float] = (0.0, 0.0, 1.0),
-                  start_deg: float = 0.0, turns: float = 1.0) -> Cameras:  # fmt: skip
+def orbit_cameras(
+    center: Tensor,
+    radius: float,
+    height: float,
+    num: int,
+    width: int,
+    height_px: int,
+    fov_deg: float = 40.0,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    start_deg: float = 0.0,
+    turns: float = 1.0,
+) -> Cameras:
     """`num` cameras evenly spaced over `turns` circles around `center` (horizontal), all looking at it."""
     up_t = torch.tensor(up, dtype=torch.float32)
     up_t = up_t / up_t.norm()

@@ -45,8 +45,10 @@ def check_no_missing(cfg: DictConfig) -> None:
     missing = sorted(k for k in OmegaConf.missing_keys(cfg) if not k.startswith("hydra"))
     if missing:
         key = missing[0]
-        raise ConfigError(f"config key {key}: expected a value, found none ('???' in its config file). Set it on the "
-                          f"command line, e.g. {key}=<value>.")  # fmt: skip
+        raise ConfigError(
+            f"config key {key}: expected a value, found none ('???' in its config file). Set it on the "
+            f"command line, e.g. {key}=<value>."
+        )
 
 
 def check_train_config(cfg: DictConfig) -> None:
@@ -70,15 +72,34 @@ def check_train_config(cfg: DictConfig) -> None:
         ("small_work_threads", "CPU threads for the step's losses, optimizer and bookkeeping", 1),
     ):
         _positive_int(cfg, key, what, example)
-    _expect(cfg, "callbacks.image_every", lambda v: _is_int(v) and v >= 0, "an integer >= 0 (0: no image grids)",
-            "For example callbacks.image_every=500.")  # fmt: skip
-    _expect(cfg, "gaussians.sh_degree", lambda v: _is_int(v) and 0 <= v <= MAX_SH_DEGREE,
-            f"an integer in 0..{MAX_SH_DEGREE} (real spherical harmonics up to degree 3)",
-            f"Use gaussians.sh_degree={MAX_SH_DEGREE}.")  # fmt: skip
-    _expect(cfg, "gaussians.opacity", lambda v: _is_number(v) and 0 < v < 1, "an initial opacity in (0, 1)",
-            "For example gaussians.opacity=0.1.")  # fmt: skip
-    _expect(cfg, "stages.stage1_steps", lambda v: _is_int(v) and v >= 0, "an integer >= 0 (0: no stage 1)",
-            "For example stages.stage1_steps=1000.")  # fmt: skip
+    _expect(
+        cfg,
+        "callbacks.image_every",
+        lambda v: _is_int(v) and v >= 0,
+        "an integer >= 0 (0: no image grids)",
+        "For example callbacks.image_every=500.",
+    )
+    _expect(
+        cfg,
+        "gaussians.sh_degree",
+        lambda v: _is_int(v) and 0 <= v <= MAX_SH_DEGREE,
+        f"an integer in 0..{MAX_SH_DEGREE} (real spherical harmonics up to degree 3)",
+        f"Use gaussians.sh_degree={MAX_SH_DEGREE}.",
+    )
+    _expect(
+        cfg,
+        "gaussians.opacity",
+        lambda v: _is_number(v) and 0 < v < 1,
+        "an initial opacity in (0, 1)",
+        "For example gaussians.opacity=0.1.",
+    )
+    _expect(
+        cfg,
+        "stages.stage1_steps",
+        lambda v: _is_int(v) and v >= 0,
+        "an integer >= 0 (0: no stage 1)",
+        "For example stages.stage1_steps=1000.",
+    )
     stage1, steps = _value(cfg, "stages.stage1_steps"), _value(cfg, "trainer.max_steps")
     fast = bool(_value(cfg, "trainer.fast_dev_run") not in (_ABSENT, None, False))
     if _is_int(stage1) and _is_int(steps) and 0 < steps <= stage1 and not fast:
@@ -91,32 +112,56 @@ def check_train_config(cfg: DictConfig) -> None:
     if isinstance(terms, DictConfig):
         for name in terms:
             key = f"loss.terms.{name}.weight"
-            _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite weight >= 0 (0 disables the term)",
-                    f"For example {key}=0.2.")  # fmt: skip
+            _expect(
+                cfg,
+                key,
+                lambda v: _is_number(v) and v >= 0,
+                "a finite weight >= 0 (0 disables the term)",
+                f"For example {key}=0.2.",
+            )
     rates = _value(cfg, "optim.lr")
     if isinstance(rates, DictConfig):
         for name in rates:
-            _expect(cfg, f"optim.lr.{name}", lambda v: _is_number(v) and v >= 0, "a finite learning rate >= 0",
-                    f"For example optim.lr.{name}=1e-3.")  # fmt: skip
-    _expect(cfg, "optim.means_final_ratio", lambda v: _is_number(v) and 0 < v <= 1, "a ratio in (0, 1]",
-            "For example optim.means_final_ratio=0.01.")  # fmt: skip
+            _expect(
+                cfg,
+                f"optim.lr.{name}",
+                lambda v: _is_number(v) and v >= 0,
+                "a finite learning rate >= 0",
+                f"For example optim.lr.{name}=1e-3.",
+            )
+    _expect(
+        cfg,
+        "optim.means_final_ratio",
+        lambda v: _is_number(v) and 0 < v <= 1,
+        "a ratio in (0, 1]",
+        "For example optim.means_final_ratio=0.01.",
+    )
 
 
 def check_evaluate_config(cfg: DictConfig) -> None:
     """`python -m framework.evaluate`: the checkpoint is required; splits and metrics are lists of names."""
     if OmegaConf.is_missing(cfg, "ckpt"):
-        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
-                          "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt).")  # fmt: skip
+        raise ConfigError(
+            "config key ckpt: expected the path of a checkpoint, found none. Pass "
+            "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt)."
+        )
     for key, example in (("splits", "[novel_view,novel_pose]"), ("metrics", "[psnr,ssim]")):
-        _expect(cfg, key, lambda v: OmegaConf.is_list(v) and all(isinstance(x, str) for x in v), "a list of names",
-                f"For example {key}={example}.")  # fmt: skip
+        _expect(
+            cfg,
+            key,
+            lambda v: OmegaConf.is_list(v) and all(isinstance(x, str) for x in v),
+            "a list of names",
+            f"For example {key}={example}.",
+        )
 
 
 def check_render_config(cfg: DictConfig) -> None:
     """`python -m framework.render`: the checkpoint is required; sizes and counts are positive."""
     if OmegaConf.is_missing(cfg, "ckpt"):
-        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
-                          "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt).")  # fmt: skip
+        raise ConfigError(
+            "config key ckpt: expected the path of a checkpoint, found none. Pass "
+            "ckpt=<run>/checkpoints/last.ckpt (or final.ckpt)."
+        )
     _expect(cfg, "cameras", lambda v: v in ("orbit", "fixed"), "'orbit' or 'fixed'", "For example cameras=orbit.")
     _positive_int(cfg, "resolution", "image side in pixels; null keeps the training resolution", 512)
     _positive_int(cfg, "fps", "frames per second of the video", 25)
@@ -129,17 +174,34 @@ def check_prune_config(cfg: DictConfig) -> None:
     """`python -m framework.prune` (and `framework.export prune=true`): tolerances are numbers >= 0 or null (the
     fold and prune tolerances also `auto`), counts are integers >= 0."""
     if OmegaConf.is_missing(cfg, "ckpt"):
-        raise ConfigError("config key ckpt: expected the path of a checkpoint, found none. Pass "
-                          "ckpt=<run>/checkpoints/final.ckpt.")  # fmt: skip
+        raise ConfigError(
+            "config key ckpt: expected the path of a checkpoint, found none. Pass ckpt=<run>/checkpoints/final.ckpt."
+        )
     for key in ("min_weight", "sh_tolerance"):
-        _expect(cfg, key, lambda v: _is_number(v) and v >= 0, "a finite number >= 0 (null switches the step off)",
-                f"For example {key}=0.004.")  # fmt: skip
-    for key, off, example in (("fold_tolerance", "F_a is never folded", 0.004),
-                              ("prune_tolerance", "no faint-Gaussian pruning", 0.03)):  # fmt: skip
-        _expect(cfg, key, lambda v: v == "auto" or (_is_number(v) and v >= 0),
-                f"'auto' or a finite number >= 0 (null: {off})", f"For example {key}={example}.")  # fmt: skip
-    for key, what in (("refit_steps", "0: no refit"), ("warmup", "untimed frames"), ("repeats", "timed frames"),
-                      ("rounds", "interleaved timing rounds")):  # fmt: skip
+        _expect(
+            cfg,
+            key,
+            lambda v: _is_number(v) and v >= 0,
+            "a finite number >= 0 (null switches the step off)",
+            f"For example {key}=0.004.",
+        )
+    for key, off, example in (
+        ("fold_tolerance", "F_a is never folded", 0.004),
+        ("prune_tolerance", "no faint-Gaussian pruning", 0.03),
+    ):
+        _expect(
+            cfg,
+            key,
+            lambda v: v == "auto" or (_is_number(v) and v >= 0),
+            f"'auto' or a finite number >= 0 (null: {off})",
+            f"For example {key}={example}.",
+        )
+    for key, what in (
+        ("refit_steps", "0: no refit"),
+        ("warmup", "untimed frames"),
+        ("repeats", "timed frames"),
+        ("rounds", "interleaved timing rounds"),
+    ):
         _expect(cfg, key, lambda v: _is_int(v) and v >= 0, f"an integer >= 0 ({what})", f"For example {key}=300.")
     _positive_int(cfg, "prune_rounds", "1: prune once, then refit; more: prune and refit again", 2)
     _known_rasterizer(cfg, "timing_rasterizer")

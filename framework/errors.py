@@ -20,8 +20,10 @@ def _as_splatrig_error(exc: BaseException) -> SplatrigError | None:
 
     if isinstance(exc, MissingMandatoryValue):  # a `???` in a YAML file that the command line did not fill
         key = getattr(exc, "full_key", None) or "?"
-        return SplatrigError(f"config key {key}: expected a value, found none ('???' in its config file). Set it on "
-                             f"the command line, e.g. {key}=<value>.")  # fmt: skip
+        return SplatrigError(
+            f"config key {key}: expected a value, found none ('???' in its config file). Set it on "
+            f"the command line, e.g. {key}=<value>."
+        )
     return None
 
 

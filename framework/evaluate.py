@@ -40,8 +40,16 @@ def _metric_objects(names: list[str]) -> dict[str, Any]:
 
 
 @torch.no_grad()
-def evaluate_module(module, datamodule, splits: list[str], metric_names: list[str], out_dir: Path,
-                    logger=None, step: int = 0, save_images: int = 4) -> dict[str, float]:  # fmt: skip
+def evaluate_module(
+    module,
+    datamodule,
+    splits: list[str],
+    metric_names: list[str],
+    out_dir: Path,
+    logger=None,
+    step: int = 0,
+    save_images: int = 4,
+) -> dict[str, float]:
     """Returns {"<split>/<metric>": mean}; writes per_frame.csv, summary.md and a few render|gt|error PNGs."""
     import imageio.v3 as iio
 
@@ -66,8 +74,11 @@ def evaluate_module(module, datamodule, splits: list[str], metric_names: list[st
         for i in tqdm(range(len(dataset)), desc=f"eval {split}", unit="img", leave=False):
             batch = collate_frames([dataset[i]]).to(module.device)
             rgb = module.render_batch(batch).render.rgb.clamp(0, 1)
-            row: dict[str, Any] = {"split": split, "frame": int(batch.frame[0]),
-                                   "view": -1 if batch.view is None else int(batch.view[0])}  # fmt: skip
+            row: dict[str, Any] = {
+                "split": split,
+                "frame": int(batch.frame[0]),
+                "view": -1 if batch.view is None else int(batch.view[0]),
+            }
             if not rows:
                 _drop_metrics_that_reject(metrics, rgb, batch.image)
             for name, metric in metrics.items():
@@ -122,8 +133,9 @@ def _body_box_metrics(dataset, batch, rgb, metrics: dict[str, Any]) -> dict[str,
     if box is None:
         return {}
     cams = batch.cameras
-    mask = box_mask(box, cams.K[0].double().cpu().numpy(), cams.world_to_cam[0].double().cpu().numpy(), cams.width,
-                    cams.height)  # fmt: skip
+    mask = box_mask(
+        box, cams.K[0].double().cpu().numpy(), cams.world_to_cam[0].double().cpu().numpy(), cams.width, cams.height
+    )
     return box_region_metrics(rgb[0], batch.image[0], mask, metrics)
 
 
@@ -132,8 +144,9 @@ def summary_table(summary: dict[str, float], splits: list[str], metrics: list[st
     for split in splits:
         for label, prefix in ((split, f"{split}/"), (f"{split} (body box)", f"{split}/bbox/")):
             if any(f"{prefix}{m}" in summary for m in metrics):
-                rows.append((label, *[f"{summary[f'{prefix}{m}']:.4f}" if f"{prefix}{m}" in summary else "-"
-                                      for m in metrics]))  # fmt: skip
+                rows.append(
+                    (label, *[f"{summary[f'{prefix}{m}']:.4f}" if f"{prefix}{m}" in summary else "-" for m in metrics])
+                )
     return format_table(rows, ("split", *metrics))
 
 

@@ -43,11 +43,14 @@ def main() -> int:
                 from framework.config_checks import check_prune_config
 
                 check_prune_config(cfg)
-                report = prune_checkpoint(ckpt, fold_tolerance=cfg.fold_tolerance,
-                                          prune_tolerance=cfg.prune_tolerance,
-                                          refit_steps=int(cfg.refit_steps),
-                                          prune_rounds=int(cfg.prune_rounds),
-                                          timing_rasterizer=cfg.timing_rasterizer)  # fmt: skip
+                report = prune_checkpoint(
+                    ckpt,
+                    fold_tolerance=cfg.fold_tolerance,
+                    prune_tolerance=cfg.prune_tolerance,
+                    refit_steps=int(cfg.refit_steps),
+                    prune_rounds=int(cfg.prune_rounds),
+                    timing_rasterizer=cfg.timing_rasterizer,
+                )
                 print(report.summary())
                 ckpt = report.out
             module = load_module(ckpt)

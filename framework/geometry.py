@@ -55,10 +55,16 @@ class _QuatNormalize(torch.autograd.Function):
 def _rotmat_entries(w: Tensor, x: Tensor, y: Tensor, z: Tensor) -> list[Tensor]:
     """The nine entries (row-major) of the rotation of the unit quaternion wxyz (the quadratic form)."""
     return [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+    ]
 
 
 def _product_table(terms: list[list[tuple[int, int, float]]]) -> tuple[Tensor, Tensor]:
@@ -76,15 +82,27 @@ def _rotation_tables() -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
     """The rotation of a unit quaternion as homogeneous quadratic forms (R00 = w^2 + x^2 - y^2 - z^2,
     R01 = 2 (xy - wz), ..., row-major), and the Hamilton product a * b (out_i = signed sums of a_j b_k)."""
     w, x, y, z = range(4)
-    rotation = _product_table([
-        [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)], [(x, y, 2), (w, z, -2)], [(x, z, 2), (w, y, 2)],
-        [(x, y, 2), (w, z, 2)], [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)], [(y, z, 2), (w, x, -2)],
-        [(x, z, 2), (w, y, -2)], [(y, z, 2), (w, x, 2)], [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
-    ])  # fmt: skip
-    hamilton = _product_table([
-        [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, -1)], [(w, x, 1), (x, w, 1), (y, z, 1), (z, y, -1)],
-        [(w, y, 1), (x, z, -1), (y, w, 1), (z, x, 1)], [(w, z, 1), (x, y, 1), (y, x, -1), (z, w, 1)],
-    ])  # fmt: skip
+    rotation = _product_table(
+        [
+            [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)],
+            [(x, y, 2), (w, z, -2)],
+            [(x, z, 2), (w, y, 2)],
+            [(x, y, 2), (w, z, 2)],
+            [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)],
+            [(y, z, 2), (w, x, -2)],
+            [(x, z, 2), (w, y, -2)],
+            [(y, z, 2), (w, x, 2)],
+            [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
+        ]
+    )
+    hamilton = _product_table(
+        [
+            [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, -1)],
+            [(w, x, 1), (x, w, 1), (y, z, 1), (z, y, -1)],
+            [(w, y, 1), (x, z, -1), (y, w, 1), (z, x, 1)],
+            [(w, z, 1), (x, y, 1), (y, x, -1), (z, w, 1)],
+        ]
+    )
     return rotation, hamilton
 
 

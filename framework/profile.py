@@ -27,8 +27,14 @@ def run(cfg: DictConfig) -> None:
     dataset = build_split(cfg.data, "train")
     body = profile_body(cfg.body, dataset)
     s = cfg.scene
-    profile, path, cached = cached_profile(dataset, body, max_frames=int(s.max_frames), blur_px=float(s.blur_px),
-                                           moving_deg=float(s.moving_deg), force=bool(cfg.force))  # fmt: skip
+    profile, path, cached = cached_profile(
+        dataset,
+        body,
+        max_frames=int(s.max_frames),
+        blur_px=float(s.blur_px),
+        moving_deg=float(s.moving_deg),
+        force=bool(cfg.force),
+    )
     print(profile.report())
     print(f"  profile {'read from' if cached else 'written to'} {path}\n")
     root = body.joint_names[body.parents.tolist().index(-1)]

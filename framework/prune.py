@@ -28,13 +28,22 @@ def prune_from_config(cfg: DictConfig):
 
     check_prune_config(cfg)
     report = prune_checkpoint(
-        cfg.ckpt, cfg.out, min_weight=float(cfg.min_weight), sh_tolerance=float(cfg.sh_tolerance),
-        max_frames=cfg.max_frames, measure=bool(cfg.measure), warmup=int(cfg.warmup), repeats=int(cfg.repeats),
-        rounds=int(cfg.rounds), device=cfg.device, fold_tolerance=cfg.fold_tolerance,
+        cfg.ckpt,
+        cfg.out,
+        min_weight=float(cfg.min_weight),
+        sh_tolerance=float(cfg.sh_tolerance),
+        max_frames=cfg.max_frames,
+        measure=bool(cfg.measure),
+        warmup=int(cfg.warmup),
+        repeats=int(cfg.repeats),
+        rounds=int(cfg.rounds),
+        device=cfg.device,
+        fold_tolerance=cfg.fold_tolerance,
         prune_tolerance=cfg.prune_tolerance,
-        refit_steps=int(cfg.refit_steps), prune_rounds=int(cfg.prune_rounds),
+        refit_steps=int(cfg.refit_steps),
+        prune_rounds=int(cfg.prune_rounds),
         timing_rasterizer=cfg.timing_rasterizer,
-    )  # fmt: skip
+    )
     print(report.summary())
     if cfg.json:
         Path(cfg.json).write_text(json.dumps(report.to_dict(), indent=1))

@@ -17,8 +17,17 @@ from framework.paths import beside_checkpoint
 
 
 @torch.no_grad()
-def render_sequence(module, dm, motion: str, cameras: str, camera_index: int, turns: float, resolution: int | None,
-                    max_frames: int | None, fps: float | None = None) -> list[np.ndarray]:  # fmt: skip
+def render_sequence(
+    module,
+    dm,
+    motion: str,
+    cameras: str,
+    camera_index: int,
+    turns: float,
+    resolution: int | None,
+    max_frames: int | None,
+    fps: float | None = None,
+) -> list[np.ndarray]:
     """uint8 frames [H, W, 3] of `motion` (a split or a file, resampled to `fps`) seen by `cameras`."""
     from framework.animation.camera_paths import sequence_cameras
     from framework.animation.frames import render_rgb, to_uint8
@@ -63,8 +72,17 @@ def render_from_config(cfg) -> Path:
     module = load_module(cfg.ckpt)
     module.eval()
     dm = datamodule_for(module)
-    images = render_sequence(module, dm, str(cfg.motion), str(cfg.cameras), int(cfg.camera_index),
-                             float(cfg.orbit_turns), cfg.resolution, cfg.max_frames, float(cfg.fps))  # fmt: skip
+    images = render_sequence(
+        module,
+        dm,
+        str(cfg.motion),
+        str(cfg.cameras),
+        int(cfg.camera_index),
+        float(cfg.orbit_turns),
+        cfg.resolution,
+        cfg.max_frames,
+        float(cfg.fps),
+    )
     name = f"render_{Path(str(cfg.motion)).stem}_{cfg.cameras}"
     out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(cfg.ckpt, name)
     (out / "frames").mkdir(parents=True, exist_ok=True)

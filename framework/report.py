@@ -25,9 +25,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("dirs", nargs="+", help="sweep (or run) directories; searched recursively for results.json")
     ap.add_argument("--kind", default="table4", choices=sorted(REPORT_KINDS), help="which report (default table4)")
     ap.add_argument("--out", default=None, help="output directory (default: <first dir>/report)")
-    ap.add_argument("--budget", action="append", default=None, metavar="KEY>=X|KEY<=X",
-                    help="tradeoff: a budget to recommend for (repeatable; keys psnr, fps, train_min, peak_mib, "
-                    "model_mb; default fps>=60, train_min<=5, model_mb<=10)")  # fmt: skip
+    ap.add_argument(
+        "--budget",
+        action="append",
+        default=None,
+        metavar="KEY>=X|KEY<=X",
+        help="tradeoff: a budget to recommend for (repeatable; keys psnr, fps, train_min, peak_mib, "
+        "model_mb; default fps>=60, train_min<=5, model_mb<=10)",
+    )
     args = ap.parse_args(argv)
     if args.budget and args.kind != "tradeoff":
         ap.error("--budget applies to --kind tradeoff only")

@@ -197,7 +197,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
             every_n_train_steps=int(cfg.callbacks.checkpoint_every),
             save_top_k=1,
             enable_version_counter=False,
-        ),  # fmt: skip
+        ),
         stage_switch := StageSwitch(int(cfg.stages.stage1_steps)),
         ImageGridLogger(int(cfg.callbacks.image_every), int(cfg.callbacks.image_views)),
     ]
@@ -228,8 +228,9 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     train_seconds, train_cpu_seconds = time.perf_counter() - fit_started, time.process_time() - fit_cpu
     # Lightning's teardown moved the module to the CPU: bake, evaluate and time it on the device it trained on
     module.to(trainer.strategy.root_device)
-    train_stats = write_train_stats(out_dir / "train_stats.json", train_seconds, trainer.global_step,
-                                    module.avatar.gaussians.num)  # fmt: skip
+    train_stats = write_train_stats(
+        out_dir / "train_stats.json", train_seconds, trainer.global_step, module.avatar.gaussians.num
+    )
     trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=False)  # the end state, whatever the save period
 
     final = ckpt_dir / "last.ckpt"
@@ -240,22 +241,40 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     result: dict[str, float] = {}
     evaluating = cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False)
     if evaluating:
-        result = evaluate_module(module, dm, list(cfg.eval.splits), list(cfg.eval.metrics), out_dir / "eval",
-                                 logger=logger, step=trainer.global_step)  # fmt: skip
+        result = evaluate_module(
+            module,
+            dm,
+            list(cfg.eval.splits),
+            list(cfg.eval.metrics),
+            out_dir / "eval",
+            logger=logger,
+            step=trainer.global_step,
+        )
     fps_frames = int(cfg.eval.get("fps_frames", 0)) if evaluating else 0
-    cost = run_cost(module, dm, final, train_seconds, int(trainer.global_step), fps_frames,
-                    int(cfg.eval.get("fps_warmup", 3)))  # fmt: skip
+    cost = run_cost(
+        module, dm, final, train_seconds, int(trainer.global_step), fps_frames, int(cfg.eval.get("fps_warmup", 3))
+    )
     config_name, overrides = _hydra_job()
     record = write_run_record(
-        out_dir, experiment=str(cfg.task_name), config_name=config_name, overrides=overrides,
-        seed=int(cfg.seed), profile=str(cfg.profile.name), data=str(cfg.data.name), steps=int(trainer.global_step),
-        max_steps=int(cfg.trainer.max_steps), train_seconds=round(train_seconds, 2),
+        out_dir,
+        experiment=str(cfg.task_name),
+        config_name=config_name,
+        overrides=overrides,
+        seed=int(cfg.seed),
+        profile=str(cfg.profile.name),
+        data=str(cfg.data.name),
+        steps=int(trainer.global_step),
+        max_steps=int(cfg.trainer.max_steps),
+        train_seconds=round(train_seconds, 2),
         train_cpu_seconds=round(train_cpu_seconds, 2),
-        run_seconds=round(time.perf_counter() - started, 2), num_gaussians=int(module.avatar.gaussians.num),
-        peak_rss_mib=train_stats["peak_rss_mib"], cuda_peak_mib=train_stats["cuda_peak_mib"],
-        stage_seconds=stage_switch.stage_seconds(), **cost,
+        run_seconds=round(time.perf_counter() - started, 2),
+        num_gaussians=int(module.avatar.gaussians.num),
+        peak_rss_mib=train_stats["peak_rss_mib"],
+        cuda_peak_mib=train_stats["cuda_peak_mib"],
+        stage_seconds=stage_switch.stage_seconds(),
+        **cost,
         metrics=metrics_from_summary(result),
-    )  # fmt: skip
+    )
     print(f"\n[splatrig] results: {out_dir}")
     print(f"[splatrig]   checkpoints: {ckpt_dir}  (resume with ckpt={ckpt_dir / 'last.ckpt'})")
     print(f"[splatrig]   tensorboard: tensorboard --logdir {out_dir / 'tb'}")

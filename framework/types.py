@@ -125,15 +125,19 @@ class BlendWeights:
     pairs: Tensor  # [N] how many pairs have w > 0 (float64 counts)
 
     @classmethod
-    def zeros(cls, n: int, device: torch.device | str | None = None,
-              dtype: torch.dtype = torch.float32) -> BlendWeights:  # fmt: skip
+    def zeros(
+        cls, n: int, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+    ) -> BlendWeights:
         z = torch.zeros(n, dtype=torch.float64, device=device)
         return cls(torch.zeros(n, dtype=dtype, device=device), z, z.clone())
 
     def add(self, other: BlendWeights) -> BlendWeights:
         """The summary of both sets of images (of the same Gaussians)."""
-        return BlendWeights(torch.maximum(self.max, other.max.to(self.max.dtype)), self.square_sum + other.square_sum,
-                            self.pairs + other.pairs)  # fmt: skip
+        return BlendWeights(
+            torch.maximum(self.max, other.max.to(self.max.dtype)),
+            self.square_sum + other.square_sum,
+            self.pairs + other.pairs,
+        )
 
     @property
     def mean_square(self) -> Tensor:
@@ -159,8 +163,9 @@ class FrameBatch:
     def to(self, device: torch.device | str, non_blocking: bool = False) -> FrameBatch:
         """On `device`. `non_blocking` from page-locked memory (`pin_memory`) lets the host queue the step's kernels
         while the copy runs (training on a GPU); from ordinary memory the copy waits for the device either way."""
-        return self._map(lambda x: x.to(device, non_blocking=non_blocking),
-                         self.cameras.to(device, non_blocking=non_blocking))  # fmt: skip
+        return self._map(
+            lambda x: x.to(device, non_blocking=non_blocking), self.cameras.to(device, non_blocking=non_blocking)
+        )
 
     def pin_memory(self) -> FrameBatch:
         """In page-locked host memory (a DataLoader with `pin_memory=True` calls this in its pinning thread)."""

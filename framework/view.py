@@ -29,8 +29,11 @@ def main() -> int:
             dm = datamodule_for(module)
             session = ViewerSession(module, dm, cfg.motion, float(cfg.fps), cfg.rasterizer)
             app = ViewerApp(session, str(cfg.host), int(cfg.port), int(cfg.resolution), subject_view(module, dm))
-            print(f"[splatrig] viewer at http://{cfg.host}:{app.port}  ({session.avatar.gaussians.num} Gaussians, "
-                  f"rasterizer {session.backend}; Ctrl-C to stop)", flush=True)  # fmt: skip
+            print(
+                f"[splatrig] viewer at http://{cfg.host}:{app.port}  ({session.avatar.gaussians.num} Gaussians, "
+                f"rasterizer {session.backend}; Ctrl-C to stop)",
+                flush=True,
+            )
             try:
                 app.run()
             except KeyboardInterrupt:

@@ -22,8 +22,16 @@ def package(tiny_avatar, tmp_path_factory):
     root = tmp_path_factory.mktemp("package")
     out = root / "export"
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache))
-    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "motion=train", "frame=3", "animatable=true",
-           f"out_dir={out}"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.export",
+        f"ckpt={ckpt}",
+        "motion=train",
+        "frame=3",
+        "animatable=true",
+        f"out_dir={out}",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=root)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return ckpt, cache, out, proc
@@ -32,8 +40,15 @@ def package(tiny_avatar, tmp_path_factory):
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)  # fmt: skip
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def repose_from_files(folder, frame: int, corrections: bool = True) -> dict[str, np.ndarray]:
@@ -50,8 +65,10 @@ def repose_from_files(folder, frame: int, corrections: bool = True) -> dict[str,
     sh = np.concatenate([dc, rest], 1).astype(np.float64)  # [N, 16, 3]
     rig = np.load(folder / "rig.npz")
     if corrections:  # step 1
-        o, s, q = (rig[k][frame].astype(np.float64) for k in ("corrected_opacity_logits", "corrected_log_scales",
-                                                              "corrected_quats"))  # fmt: skip
+        o, s, q = (
+            rig[k][frame].astype(np.float64)
+            for k in ("corrected_opacity_logits", "corrected_log_scales", "corrected_quats")
+        )
         kc = rig["corrected_sh"].shape[2]
         sh[:, :kc] = rig["corrected_sh"][frame]
     P = np.einsum("nk,kij->nij", rig["skin_weights"].astype(np.float64), rig["bone_transforms"][frame][:, :3])  # 2
@@ -70,8 +87,14 @@ def repose_from_files(folder, frame: int, corrections: bool = True) -> dict[str,
     vec = np.stack([-sh[:, 3], -sh[:, 1], sh[:, 2]], 1)  # [N, 3 (xyz), 3 channels]: colour = C1 * vec . d
     vec = np.einsum("nij,njc->nic", R, vec)  # 5: degree 1 turns like a vector
     sh[:, 1], sh[:, 2], sh[:, 3] = -vec[:, 1], vec[:, 2], -vec[:, 0]
-    return {"means": means, "quats": quats, "log_scales": s, "opacity_logits": o, "sh": sh,
-            "sh_degree": int(rig["sh_degree"])}  # fmt: skip
+    return {
+        "means": means,
+        "quats": quats,
+        "log_scales": s,
+        "opacity_logits": o,
+        "sh": sh,
+        "sh_degree": int(rig["sh_degree"]),
+    }
 
 
 def test_package_holds_the_documented_arrays(package):
@@ -109,13 +132,22 @@ def test_package_reposes_like_the_avatar(package, monkeypatch):
 
     def render(g: dict[str, np.ndarray]) -> torch.Tensor:
         t = {k: torch.tensor(v).float() for k, v in g.items() if k != "sh_degree"}
-        return torch_ref.render(t["means"], t["quats"], t["log_scales"].exp(), t["opacity_logits"].sigmoid(), t["sh"],
-                                cams, sh_degree=g["sh_degree"], background=module.avatar.background).rgb  # fmt: skip
+        return torch_ref.render(
+            t["means"],
+            t["quats"],
+            t["log_scales"].exp(),
+            t["opacity_logits"].sigmoid(),
+            t["sh"],
+            cams,
+            sh_degree=g["sh_degree"],
+            background=module.avatar.background,
+        ).rgb
 
     for f in range(motion.num_frames):
         with torch.no_grad():
-            ours = module.render_batch(frame_batch(cams, torch.as_tensor(motion.poses[f]),
-                                                   torch.as_tensor(motion.roots[f]), frames[f])).render.rgb  # fmt: skip
+            ours = module.render_batch(
+                frame_batch(cams, torch.as_tensor(motion.poses[f]), torch.as_tensor(motion.roots[f]), frames[f])
+            ).render.rgb
             theirs = render(repose_from_files(out / "train_animatable", f))
             uncorrected = render(repose_from_files(out / "train_animatable", f, corrections=False))
         assert ours.abs().mean() > 0.01

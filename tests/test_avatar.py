@@ -35,10 +35,14 @@ def _batch(body, pose=None, root=None, cameras=None) -> FrameBatch:
     J = body.num_joints
     z = torch.zeros(1, SIZE, SIZE)
     return FrameBatch(
-        image=torch.zeros(1, SIZE, SIZE, 3), mask=z, boundary=z + 1, cameras=cameras or _camera(),
-        frame=torch.zeros(1, dtype=torch.long), pose=torch.zeros(1, J, 3) if pose is None else pose,
+        image=torch.zeros(1, SIZE, SIZE, 3),
+        mask=z,
+        boundary=z + 1,
+        cameras=cameras or _camera(),
+        frame=torch.zeros(1, dtype=torch.long),
+        pose=torch.zeros(1, J, 3) if pose is None else pose,
         root=torch.eye(4)[None] if root is None else root,
-    )  # fmt: skip
+    )
 
 
 def _avatar(body, corrector="latent", deformer="lbs_residual", n=600) -> Avatar:
@@ -58,8 +62,16 @@ def test_identity_pose_with_identity_corrector_renders_the_canonical_gaussians(b
     out = avatar(_batch(body), sh_degree=1)
     canon = avatar.gaussians.gaussians()
     torch.testing.assert_close(out.posed.means, canon.means, atol=1e-5, rtol=0)
-    direct = avatar.rasterizer.render(canon.means, canon.quats, canon.scales, canon.opacities, canon.sh, _camera(),
-                                      sh_degree=1, background=avatar.background)  # fmt: skip
+    direct = avatar.rasterizer.render(
+        canon.means,
+        canon.quats,
+        canon.scales,
+        canon.opacities,
+        canon.sh,
+        _camera(),
+        sh_degree=1,
+        background=avatar.background,
+    )
     assert direct.alpha.max() > 0.5, "the test camera does not see the body"
     torch.testing.assert_close(out.render.rgb, direct.rgb, atol=1e-4, rtol=0)
 
@@ -132,8 +144,9 @@ def test_inactive_sh_bands_are_skipped_without_changing_render_or_gradients(body
         else:
             _, posed, _ = avatar.pose(batch)  # all 16 coefficients, every band rotated
             assert posed.sh.shape[1] == 16
-            rgb = avatar.rasterizer.render(posed.means, posed.quats, posed.scales, posed.opacities, posed.sh,
-                                           batch.cameras, sh_degree=degree).rgb  # fmt: skip
+            rgb = avatar.rasterizer.render(
+                posed.means, posed.quats, posed.scales, posed.opacities, posed.sh, batch.cameras, sh_degree=degree
+            ).rgb
         rgb.square().sum().backward()
         return rgb.detach(), {k: p.grad.clone() for k, p in avatar.named_parameters() if p.grad is not None}
 
@@ -160,8 +173,9 @@ def test_posed_gaussians_are_reused_for_novel_views_of_one_pose(body):
         b = avatar(_batch(body, cameras=novel), sh_degree=1)
         avatar(_batch(body, pose=0.1 * torch.ones(1, body.num_joints, 3)), sh_degree=1)
         p = b.posed
-        direct = avatar.rasterizer.render(p.means, p.quats, p.scales, p.opacities, p.sh, novel, sh_degree=1,
-                                          background=avatar.background)  # fmt: skip
+        direct = avatar.rasterizer.render(
+            p.means, p.quats, p.scales, p.opacities, p.sh, novel, sh_degree=1, background=avatar.background
+        )
     assert len(calls) == 2
     assert a.posed is b.posed
     assert float((a.render.rgb - b.render.rgb).abs().max()) > 0.1, "the novel camera must see a different image"
@@ -203,11 +217,23 @@ def test_stage_switch_enables_exactly_the_stage_two_parameters(body):
         }
 
     stage1 = grads_after_step(0)
-    assert stage1 == {"gaussians": True, "pose": True, "joints": True, "corrector": False, "weight_mlp": False,
-                      "latents": False}  # fmt: skip
+    assert stage1 == {
+        "gaussians": True,
+        "pose": True,
+        "joints": True,
+        "corrector": False,
+        "weight_mlp": False,
+        "latents": False,
+    }
     stage2 = grads_after_step(10)
-    assert stage2 == {"gaussians": True, "pose": True, "joints": True, "corrector": True, "weight_mlp": True,
-                      "latents": True}  # fmt: skip
+    assert stage2 == {
+        "gaussians": True,
+        "pose": True,
+        "joints": True,
+        "corrector": True,
+        "weight_mlp": True,
+        "latents": True,
+    }
     assert stage2_started == [10]
 
 
@@ -264,8 +290,7 @@ def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monk
         _, posed_torch, _ = avatar.pose(batch, sh_degree=1)
     assert len(calls) == 1
     for key in ("means", "quats", "log_scales"):
-        torch.testing.assert_close(getattr(posed_compiled, key), getattr(posed_torch, key), atol=2e-5, rtol=0,
-                                   msg=key)  # fmt: skip
+        torch.testing.assert_close(getattr(posed_compiled, key), getattr(posed_torch, key), atol=2e-5, rtol=0, msg=key)
     moved = (posed_torch.means - avatar.gaussians.gaussians().means).detach()
     assert float(moved.abs().max()) > 0.05  # the pose moved them
 

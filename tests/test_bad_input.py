@@ -27,9 +27,21 @@ from test_divergence import DIVERGENCE_CASES
 from framework.errors import reported_as_message
 
 # the tiny avatar on a 4-view, 4-frame ZJU-layout sequence of the procedural body (tests/test_zju_mocap.py writes it)
-ZJU = ["data=zju_mocap", "data.protocol=null", "data.downscale=1", "body=procedural", "deformer=lbs",
-       "deformer.grid_resolution=8", "gaussians=body_surface", "gaussians.num=200", "corrector=none",
-       "trainer.max_steps=3", "callbacks.progress_bar=false", "eval.after_fit=false", "logger=none"]  # fmt: skip
+ZJU = [
+    "data=zju_mocap",
+    "data.protocol=null",
+    "data.downscale=1",
+    "body=procedural",
+    "deformer=lbs",
+    "deformer.grid_resolution=8",
+    "gaussians=body_surface",
+    "gaussians.num=200",
+    "corrector=none",
+    "trainer.max_steps=3",
+    "callbacks.progress_bar=false",
+    "eval.after_fit=false",
+    "logger=none",
+]
 
 
 @dataclass(frozen=True)
@@ -47,86 +59,162 @@ def seq(variant: str) -> list[str]:
 
 CASES = [
     # ---- config values (framework/config_checks.py)
-    Case("zju_root_missing", "train", "`data=zju_mocap data.root=/nonexistent/seq`",
-         ["data=zju_mocap", "data.root=/nonexistent/seq"]),
+    Case(
+        "zju_root_missing",
+        "train",
+        "`data=zju_mocap data.root=/nonexistent/seq`",
+        ["data=zju_mocap", "data.root=/nonexistent/seq"],
+    ),
     Case("zju_root_unset", "train", "`data=zju_mocap` (no `data.root`)", ["data=zju_mocap"]),
     Case("sh_degree_7", "train", "`gaussians.sh_degree=7`", ["gaussians.sh_degree=7"]),
     Case("negative_loss_weight", "train", "`loss.terms.l1.weight=-1`", ["loss.terms.l1.weight=-1"]),
     Case("zero_steps", "train", "`trainer.max_steps=0`", ["trainer.max_steps=0"]),
     Case("negative_steps", "train", "`trainer.max_steps=-5`", ["trainer.max_steps=-5"]),
-    Case("stage1_longer_than_run", "train", "`+experiment=paper_full trainer.max_steps=100 stages.stage1_steps=200`",
-         ["+experiment=paper_full", "trainer.max_steps=100", "stages.stage1_steps=200"]),
+    Case(
+        "stage1_longer_than_run",
+        "train",
+        "`+experiment=paper_full trainer.max_steps=100 stages.stage1_steps=200`",
+        ["+experiment=paper_full", "trainer.max_steps=100", "stages.stage1_steps=200"],
+    ),
     Case("resolution_0", "train", "`data.resolution=0`", ["data.resolution=0"]),
     Case("small_work_threads_0", "train", "`small_work_threads=0`", ["small_work_threads=0"]),
     Case("unknown_component", "train", "`rasterizer.name=torch_reff`", ["rasterizer.name=torch_reff"]),
     # ---- dataset files (framework/data/zju/, framework/data/sequence_dataset.py)
-    Case("image_size_mismatch", "train", "`data.root=` a sequence with one 48x30 image among 48x48 ones",
-         seq("imgsize")),
-    Case("mask_size_mismatch", "train", "`data.root=` a sequence whose mask of frame 1, view 2 is 48x40",
-         seq("masksize")),
-    Case("mask_empty", "train", "`data.root=` a sequence whose mask of frame 2, view 1 is all background",
-         [*seq("emptymask"), "data.train_frames=[2,3,1]", "data.train_views=[1]"]),
+    Case(
+        "image_size_mismatch", "train", "`data.root=` a sequence with one 48x30 image among 48x48 ones", seq("imgsize")
+    ),
+    Case(
+        "mask_size_mismatch", "train", "`data.root=` a sequence whose mask of frame 1, view 2 is 48x40", seq("masksize")
+    ),
+    Case(
+        "mask_empty",
+        "train",
+        "`data.root=` a sequence whose mask of frame 2, view 1 is all background",
+        [*seq("emptymask"), "data.train_frames=[2,3,1]", "data.train_views=[1]"],
+    ),
     Case("mask_missing", "train", "`data.root=` a sequence without the mask of frame 0, view 2", seq("nomask")),
     Case("image_missing", "train", "`data.root=` a sequence without the image of frame 2, view 2", seq("noimage")),
-    Case("image_corrupted", "train", "`data.root=` a sequence whose image of frame 0, view 3 is not an image",
-         seq("corrupt")),
-    Case("image_truncated", "train", "`data.root=` a sequence whose image of frame 3, view 0 is cut in half",
-         seq("trunc")),
+    Case(
+        "image_corrupted",
+        "train",
+        "`data.root=` a sequence whose image of frame 0, view 3 is not an image",
+        seq("corrupt"),
+    ),
+    Case(
+        "image_truncated",
+        "train",
+        "`data.root=` a sequence whose image of frame 3, view 0 is cut in half",
+        seq("trunc"),
+    ),
     Case("camera_not_rotation", "train", "`data.root=` a sequence whose camera 1 has R scaled by 1.3", seq("rot")),
     Case("camera_negative_focal", "train", "`data.root=` a sequence whose camera 2 has fx = -50", seq("focal")),
-    Case("pose_joint_count_differs", "train", "`data.root=` a sequence whose frame 1 has 16 joints, the others 17",
-         seq("joints")),
-    Case("pose_joint_count_vs_body", "train", "`data.root=` a sequence posed with 16 joints, `body=procedural` (17)",
-         seq("joints16")),
+    Case(
+        "pose_joint_count_differs",
+        "train",
+        "`data.root=` a sequence whose frame 1 has 16 joints, the others 17",
+        seq("joints"),
+    ),
+    Case(
+        "pose_joint_count_vs_body",
+        "train",
+        "`data.root=` a sequence posed with 16 joints, `body=procedural` (17)",
+        seq("joints16"),
+    ),
     Case("pose_non_finite", "train", "`data.root=` a sequence with a NaN in the pose of frame 2", seq("nan")),
     # ---- checkpoints (framework/lightning/checkpoint_io.py, framework/lightning/module.py)
     Case("resume_ckpt_truncated", "train", "`ckpt=` a checkpoint cut in half", [*seq("seq"), "ckpt={truncated}"]),
-    Case("resume_other_body", "train", "`ckpt=` a checkpoint of `body=procedural` with `body.segments=8`",
-         [*seq("seq"), "body.segments=8", "ckpt={ckpt}"]),
-    Case("resume_other_model", "train", "`ckpt=` an avatar checkpoint, resumed as `+experiment=static_fit`",
-         ["+experiment=static_fit", "data.resolution=16", "ckpt={ckpt}"]),
+    Case(
+        "resume_other_body",
+        "train",
+        "`ckpt=` a checkpoint of `body=procedural` with `body.segments=8`",
+        [*seq("seq"), "body.segments=8", "ckpt={ckpt}"],
+    ),
+    Case(
+        "resume_other_model",
+        "train",
+        "`ckpt=` an avatar checkpoint, resumed as `+experiment=static_fit`",
+        ["+experiment=static_fit", "data.resolution=16", "ckpt={ckpt}"],
+    ),
     Case("evaluate_no_ckpt", "evaluate", "no `ckpt=`", []),
     Case("evaluate_ckpt_missing", "evaluate", "`ckpt=` a file that does not exist", ["ckpt={root}/none.ckpt"]),
     Case("evaluate_ckpt_truncated", "evaluate", "`ckpt=` a checkpoint cut in half", ["ckpt={truncated}"]),
     Case("evaluate_ckpt_not_torch", "evaluate", "`ckpt=` a text file", ["ckpt={garbage}"]),
-    Case("evaluate_ckpt_foreign", "evaluate", "`ckpt=` a torch file that is not a splatrig checkpoint",
-         ["ckpt={foreign}"]),
+    Case(
+        "evaluate_ckpt_foreign",
+        "evaluate",
+        "`ckpt=` a torch file that is not a splatrig checkpoint",
+        ["ckpt={foreign}"],
+    ),
     Case("evaluate_unknown_metric", "evaluate", "`metrics=[psnrr]`", ["ckpt={ckpt}", "metrics=[psnrr]"]),
     Case("render_no_ckpt", "render", "no `ckpt=`", []),
-    Case("render_motion_joints", "render", "`motion=` an .npz whose poses have 5 joints",
-         ["ckpt={ckpt}", "motion={motion_joints}"]),
-    Case("render_motion_non_finite", "render", "`motion=` an .npz with a NaN in frame 1",
-         ["ckpt={ckpt}", "motion={motion_nan}"]),
-    Case("render_motion_no_poses", "render", "`motion=` an .npz without `poses`",
-         ["ckpt={ckpt}", "motion={motion_nokey}"]),
-    Case("render_motion_truncated", "render", "`motion=` an .npz cut in half",
-         ["ckpt={ckpt}", "motion={motion_cut}"]),
-    Case("render_camera_index", "render", "`cameras=fixed camera_index=99`",
-         ["ckpt={ckpt}", "motion=train", "cameras=fixed", "camera_index=99"]),
+    Case(
+        "render_motion_joints",
+        "render",
+        "`motion=` an .npz whose poses have 5 joints",
+        ["ckpt={ckpt}", "motion={motion_joints}"],
+    ),
+    Case(
+        "render_motion_non_finite",
+        "render",
+        "`motion=` an .npz with a NaN in frame 1",
+        ["ckpt={ckpt}", "motion={motion_nan}"],
+    ),
+    Case(
+        "render_motion_no_poses",
+        "render",
+        "`motion=` an .npz without `poses`",
+        ["ckpt={ckpt}", "motion={motion_nokey}"],
+    ),
+    Case("render_motion_truncated", "render", "`motion=` an .npz cut in half", ["ckpt={ckpt}", "motion={motion_cut}"]),
+    Case(
+        "render_camera_index",
+        "render",
+        "`cameras=fixed camera_index=99`",
+        ["ckpt={ckpt}", "motion=train", "cameras=fixed", "camera_index=99"],
+    ),
     Case("render_resolution_0", "render", "`resolution=0`", ["ckpt={ckpt}", "resolution=0"]),
     Case("prune_refit_steps_negative", "prune", "`refit_steps=-1`", ["ckpt={ckpt}", "refit_steps=-1"]),
     Case("prune_tolerance_negative", "prune", "`prune_tolerance=-0.01`", ["ckpt={ckpt}", "prune_tolerance=-0.01"]),
     Case("prune_fold_tolerance_word", "prune", "`fold_tolerance=never`", ["ckpt={ckpt}", "fold_tolerance=never"]),
     Case("prune_rounds_zero", "prune", "`prune_rounds=0`", ["ckpt={ckpt}", "prune_rounds=0"]),
-    Case("prune_timing_rasterizer_unknown", "prune", "`timing_rasterizer=numbaa`",
-         ["ckpt={ckpt}", "timing_rasterizer=numbaa"]),
-]  # fmt: skip
+    Case(
+        "prune_timing_rasterizer_unknown",
+        "prune",
+        "`timing_rasterizer=numbaa`",
+        ["ckpt={ckpt}", "timing_rasterizer=numbaa"],
+    ),
+]
 
 # Overrides the command line cannot take (framework.cli) and a resume checkpoint that does not exist: found before
 # anything is built, so these run as a user would (a fresh process each) without the `world` fixture.
 COMMAND_LINE_CASES = [
     Case("option_unknown", "train", "`rasterizer=numbaa`", ["rasterizer=numbaa"], "; did you mean numba?"),
-    Case("experiment_unknown", "train", "`+experiment=paper_ful`", ["+experiment=paper_ful"],
-         "; did you mean paper_full?"),
-    Case("key_unknown", "train", "`trainer.max_step=100`", ["trainer.max_step=100"],
-         "; did you mean trainer.max_steps?"),
+    Case(
+        "experiment_unknown",
+        "train",
+        "`+experiment=paper_ful`",
+        ["+experiment=paper_ful"],
+        "; did you mean paper_full?",
+    ),
+    Case(
+        "key_unknown", "train", "`trainer.max_step=100`", ["trainer.max_step=100"], "; did you mean trainer.max_steps?"
+    ),
     # `motion=`, as in render and view, is a key of export's config (it used to be unknown)
-    Case("key_unknown_export", "export", "`motion=novel_pose fram=3`",
-         ["ckpt=/nonexistent/last.ckpt", "motion=novel_pose", "fram=3"], "; did you mean frame?"),
+    Case(
+        "key_unknown_export",
+        "export",
+        "`motion=novel_pose fram=3`",
+        ["ckpt=/nonexistent/last.ckpt", "motion=novel_pose", "fram=3"],
+        "; did you mean frame?",
+    ),
     # the dataset's root does not exist either: the checkpoint is checked first, before the data is opened
-    Case("resume_ckpt_missing", "train", "`ckpt=/nonexistent/last.ckpt`",
-         ["data=zju_mocap", "data.root=/nonexistent/seq", "ckpt=/nonexistent/last.ckpt"]),
-]  # fmt: skip
+    Case(
+        "resume_ckpt_missing",
+        "train",
+        "`ckpt=/nonexistent/last.ckpt`",
+        ["data=zju_mocap", "data.root=/nonexistent/seq", "ckpt=/nonexistent/last.ckpt"],
+    ),
+]
 
 
 def invoke(entry: str, overrides: list[str], out_dir: Path) -> tuple[int, str]:
@@ -143,8 +231,12 @@ def invoke(entry: str, overrides: list[str], out_dir: Path) -> tuple[int, str]:
     )
     with initialize_config_module(config_module="framework.conf", version_base="1.3"):
         cfg = compose(config_name=entry, overrides=[*overrides, *extra])
-    function = {"train": run, "evaluate": evaluate_from_config, "render": render_from_config,
-                "prune": prune_from_config}[entry]  # fmt: skip
+    function = {
+        "train": run,
+        "evaluate": evaluate_from_config,
+        "render": render_from_config,
+        "prune": prune_from_config,
+    }[entry]
     err = io.StringIO()
     status = 0
     with contextlib.redirect_stderr(err):
@@ -217,8 +309,11 @@ def world(tmp_path_factory: pytest.TempPathFactory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("SPLATRIG_CACHE_DIR", str(root / "cache"))
         paths: dict[str, Path] = {"root": root, **_variants(root)}
-        status, err = invoke("train", [*ZJU, f"data.root={paths['seq']}", "trainer.max_steps=2",
-                                       "callbacks.checkpoint_every=1"], root / "run")  # fmt: skip
+        status, err = invoke(
+            "train",
+            [*ZJU, f"data.root={paths['seq']}", "trainer.max_steps=2", "callbacks.checkpoint_every=1"],
+            root / "run",
+        )
         assert status == 0, err
         paths["ckpt"] = root / "run" / "checkpoints" / "last.ckpt"
         data = paths["ckpt"].read_bytes()
@@ -281,10 +376,13 @@ def test_command_line_error_before_anything_is_built(case: Case, tmp_path: Path)
     check_documented(case.id, case.entry, case.bad_input, line)
 
 
-@pytest.mark.parametrize(("entry", "args", "note"), [
-    ("train", ["ckpt_path=/nonexistent/last.ckpt"], "ckpt_path= is the older name of ckpt="),
-    ("export", ["ckpt=/nonexistent/last.ckpt", "pose=novel_pose"], "pose= is the older name of motion="),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("entry", "args", "note"),
+    [
+        ("train", ["ckpt_path=/nonexistent/last.ckpt"], "ckpt_path= is the older name of ckpt="),
+        ("export", ["ckpt=/nonexistent/last.ckpt", "pose=novel_pose"], "pose= is the older name of motion="),
+    ],
+)
 def test_older_key_names_still_work_with_one_note(entry: str, args: list[str], note: str, tmp_path: Path) -> None:
     """train's `ckpt_path=` is now `ckpt=` and export's `pose=` is `motion=`, as in the other entry points; the older
     names still work and print one note (here the checkpoint is missing, so the run stops at the usual message)."""

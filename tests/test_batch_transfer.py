@@ -16,14 +16,27 @@ NEEDS_CUDA = {"condition": not torch.cuda.is_available(), "reason": "needs a CUD
 def _batch() -> FrameBatch:
     g = torch.Generator().manual_seed(0)
     cams = Cameras(torch.rand(1, 3, 3, generator=g), torch.rand(1, 4, 4, generator=g), 6, 5)
-    return FrameBatch(image=torch.rand(1, 5, 6, 3, generator=g), mask=torch.rand(1, 5, 6, generator=g),
-                      boundary=torch.rand(1, 5, 6, generator=g), cameras=cams, frame=torch.tensor([3]),
-                      pose=torch.rand(1, 4, 3, generator=g), root=None)  # fmt: skip
+    return FrameBatch(
+        image=torch.rand(1, 5, 6, 3, generator=g),
+        mask=torch.rand(1, 5, 6, generator=g),
+        boundary=torch.rand(1, 5, 6, generator=g),
+        cameras=cams,
+        frame=torch.tensor([3]),
+        pose=torch.rand(1, 4, 3, generator=g),
+        root=None,
+    )
 
 
 def _tensors(batch: FrameBatch) -> list[torch.Tensor]:
-    fields = (batch.image, batch.mask, batch.boundary, batch.frame, batch.pose, batch.cameras.K,
-              batch.cameras.world_to_cam)  # fmt: skip
+    fields = (
+        batch.image,
+        batch.mask,
+        batch.boundary,
+        batch.frame,
+        batch.pose,
+        batch.cameras.K,
+        batch.cameras.world_to_cam,
+    )
     return [t for t in fields if t is not None]
 
 

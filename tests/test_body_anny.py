@@ -66,10 +66,19 @@ def _random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
     q = q / q.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
     return torch.stack(
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1
-    ).reshape(n, 3, 3)  # fmt: skip
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        -1,
+    ).reshape(n, 3, 3)
 
 
 def test_pose_conversion_matches_anny_kinematics_on_random_rig():
@@ -126,8 +135,9 @@ def test_asset_fk_matches_anny_kinematics_full_rig(anny_full):
     pose = 0.6 * torch.randn(B, J, 3, generator=gen, dtype=torch.float64)
     delta = anny_pose_parameters(pose, a["rest_bone_poses"], a["reference_orientations"], a["rest_joints"], parents)
     chain = kin.get_kinematic_chain(parents)
-    T_anny, _ = kin.forward_kinematic(chain, a["rest_bone_poses"].expand(B, J, 4, 4), delta, "local-ref",
-                                      a["reference_orientations"])  # fmt: skip
+    T_anny, _ = kin.forward_kinematic(
+        chain, a["rest_bone_poses"].expand(B, J, 4, 4), delta, "local-ref", a["reference_orientations"]
+    )
     W = skin.dense_bone_weights(a["bone_weights"], a["bone_indices"].long(), J)
     v_anny = skin.dense_linear_blend_skinning(a["rest_vertices"].expand(B, -1, -1), W, T_anny)
     _, T_ours = forward_kinematics(pose, a["rest_joints"], a["parents"])
@@ -151,8 +161,9 @@ def test_posed_vertices_match_anny_forward(anny_full, anny_reduced):
     B, J = 3, anny_full.num_joints
     pose = 0.6 * torch.randn(B, J, 3, generator=gen, dtype=torch.float64)
     rest_poses = a_rest["rest_bone_poses"][0]
-    delta = anny_pose_parameters(pose, rest_poses, model.reference_bone_orientations, a_rest["rest_bone_heads"][0],
-                                 model.bone_parents)  # fmt: skip
+    delta = anny_pose_parameters(
+        pose, rest_poses, model.reference_bone_orientations, a_rest["rest_bone_heads"][0], model.bone_parents
+    )
     with torch.no_grad():
         ref = model(pose_parameters=delta)["vertices"]  # [B, V, 3] float64
     # float64 through our FK + LBS on the asset's float64 arrays (the body's buffers are float32)

@@ -53,9 +53,14 @@ def write_smpl_file(path, posedirs_scale: float = 0.0, seed: int = 0) -> dict[st
     kintree = np.stack([body.parents.numpy(), np.arange(J)]).astype(np.int64)
     kintree[0, 0] = 4294967295  # as in SMPL's files: the root's "parent" is uint32 -1
     data = {
-        "v_template": v, "shapedirs": shapedirs, "posedirs": posedirs, "J_regressor": Jreg, "weights": w,
-        "kintree_table": kintree, "f": body.faces.numpy().astype(np.uint32),
-    }  # fmt: skip
+        "v_template": v,
+        "shapedirs": shapedirs,
+        "posedirs": posedirs,
+        "J_regressor": Jreg,
+        "weights": w,
+        "kintree_table": kintree,
+        "f": body.faces.numpy().astype(np.uint32),
+    }
     with open(path, "wb") as fh:
         pickle.dump(data, fh, protocol=2)
     return data
@@ -65,8 +70,12 @@ def smplx_vertices(path, pose: torch.Tensor, betas: torch.Tensor) -> torch.Tenso
     model = smplx.SMPL(model_path=str(path), num_betas=10, dtype=torch.float64)
     B = pose.shape[0]
     with torch.no_grad():
-        out = model(betas=betas.expand(B, -1), global_orient=pose[:, 0], body_pose=pose[:, 1:].reshape(B, -1),
-                    transl=torch.zeros(B, 3, dtype=torch.float64))  # fmt: skip
+        out = model(
+            betas=betas.expand(B, -1),
+            global_orient=pose[:, 0],
+            body_pose=pose[:, 1:].reshape(B, -1),
+            transl=torch.zeros(B, 3, dtype=torch.float64),
+        )
     return out.vertices
 
 

@@ -26,14 +26,83 @@ from plugins.body.smplx_body import SMPLXBody, pose_input_indices  # noqa: E402
 
 N_VERTS = 10475
 J = 55
-SMPLX_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
-                 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
-                 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53]  # fmt: skip
+SMPLX_PARENTS = [
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    15,
+    15,
+    15,
+    20,
+    25,
+    26,
+    20,
+    28,
+    29,
+    20,
+    31,
+    32,
+    20,
+    34,
+    35,
+    20,
+    37,
+    38,
+    21,
+    40,
+    41,
+    21,
+    43,
+    44,
+    21,
+    46,
+    47,
+    21,
+    49,
+    50,
+    21,
+    52,
+    53,
+]
 # procedural joint -> the SMPL-X joint that takes its skinning weight
-PROCEDURAL_TO_SMPLX = {"pelvis": 0, "spine": 3, "chest": 9, "neck": 12, "head": 15, "upperarm.L": 16,
-                       "lowerarm.L": 18, "hand.L": 20, "upperarm.R": 17, "lowerarm.R": 19, "hand.R": 21,
-                       "upperleg.L": 1, "lowerleg.L": 4, "foot.L": 7, "upperleg.R": 2, "lowerleg.R": 5,
-                       "foot.R": 8}  # fmt: skip
+PROCEDURAL_TO_SMPLX = {
+    "pelvis": 0,
+    "spine": 3,
+    "chest": 9,
+    "neck": 12,
+    "head": 15,
+    "upperarm.L": 16,
+    "lowerarm.L": 18,
+    "hand.L": 20,
+    "upperarm.R": 17,
+    "lowerarm.R": 19,
+    "hand.R": 21,
+    "upperleg.L": 1,
+    "lowerleg.L": 4,
+    "foot.L": 7,
+    "upperleg.R": 2,
+    "lowerleg.R": 5,
+    "foot.R": 8,
+}
 
 
 def smplx_joint_positions(rest_joints: dict[str, np.ndarray]) -> np.ndarray:
@@ -81,12 +150,20 @@ def write_smplx_file(path: Path, seed: int = 0) -> dict[str, np.ndarray]:
     kintree[0, 0] = 4294967295
     comps = [np.linalg.qr(rng.standard_normal((45, 45)))[0].T for _ in range(2)]  # orthonormal PCA bases
     data = {
-        "v_template": v, "shapedirs": shapedirs, "posedirs": np.zeros((N_VERTS, 3, (J - 1) * 9), np.float32),
-        "J_regressor": nearest_vertex_regressor(v, joints), "weights": w, "kintree_table": kintree,
-        "f": body.faces.numpy().astype(np.uint32), "hands_componentsl": comps[0], "hands_componentsr": comps[1],
-        "hands_meanl": 0.3 * rng.standard_normal(45), "hands_meanr": 0.3 * rng.standard_normal(45),
-        "lmk_faces_idx": rng.integers(0, len(body.faces), 51), "lmk_bary_coords": np.full((51, 3), 1 / 3),
-    }  # fmt: skip
+        "v_template": v,
+        "shapedirs": shapedirs,
+        "posedirs": np.zeros((N_VERTS, 3, (J - 1) * 9), np.float32),
+        "J_regressor": nearest_vertex_regressor(v, joints),
+        "weights": w,
+        "kintree_table": kintree,
+        "f": body.faces.numpy().astype(np.uint32),
+        "hands_componentsl": comps[0],
+        "hands_componentsr": comps[1],
+        "hands_meanl": 0.3 * rng.standard_normal(45),
+        "hands_meanr": 0.3 * rng.standard_normal(45),
+        "lmk_faces_idx": rng.integers(0, len(body.faces), 51),
+        "lmk_bary_coords": np.full((51, 3), 1 / 3),
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix == ".npz":
         np.savez_compressed(path, **data)
@@ -111,16 +188,30 @@ def body(smplx_file: Path) -> SMPLXBody:
 def smplx_forward(path: Path, pose: torch.Tensor, betas: torch.Tensor, **kwargs) -> torch.Tensor:
     """smplx's own SMPL-X forward (float64) for full poses [B, 55, 3], or hand PCA coefficients via kwargs."""
     use_pca = "left_hand_pose" in kwargs
-    model = smplx.SMPLX(model_path=str(path), ext=path.suffix[1:], num_betas=10, use_pca=use_pca, num_pca_comps=6,
-                        flat_hand_mean=True, dtype=torch.float64)  # fmt: skip
+    model = smplx.SMPLX(
+        model_path=str(path),
+        ext=path.suffix[1:],
+        num_betas=10,
+        use_pca=use_pca,
+        num_pca_comps=6,
+        flat_hand_mean=True,
+        dtype=torch.float64,
+    )
     B = pose.shape[0]
     hands = {"left_hand_pose": pose[:, 25:40].reshape(B, -1), "right_hand_pose": pose[:, 40:55].reshape(B, -1)}
     hands.update(kwargs)
     with torch.no_grad():
-        out = model(betas=betas.expand(B, -1), global_orient=pose[:, 0], body_pose=pose[:, 1:22].reshape(B, -1),
-                    jaw_pose=pose[:, 22], leye_pose=pose[:, 23], reye_pose=pose[:, 24],
-                    expression=torch.zeros(B, 10, dtype=torch.float64), transl=torch.zeros(B, 3, dtype=torch.float64),
-                    **hands)  # fmt: skip
+        out = model(
+            betas=betas.expand(B, -1),
+            global_orient=pose[:, 0],
+            body_pose=pose[:, 1:22].reshape(B, -1),
+            jaw_pose=pose[:, 22],
+            leye_pose=pose[:, 23],
+            reye_pose=pose[:, 24],
+            expression=torch.zeros(B, 10, dtype=torch.float64),
+            transl=torch.zeros(B, 3, dtype=torch.float64),
+            **hands,
+        )
     return out.vertices
 
 
@@ -178,8 +269,14 @@ def test_avatar_feeds_the_corrector_only_the_pose_input_joints(body: SMPLXBody):
     avatar = Avatar(GaussianParams(g), REGISTRIES["rasterizer"].build("torch_ref"), corrector, deformer, body)
     pose = torch.randn(1, J, 3) * 0.3
     cams = Cameras(K=torch.eye(3)[None], world_to_cam=torch.eye(4)[None], width=4, height=4)
-    batch = FrameBatch(image=torch.zeros(1, 4, 4, 3), mask=torch.zeros(1, 4, 4), boundary=torch.ones(1, 4, 4),
-                       cameras=cams, frame=torch.zeros(1, dtype=torch.long), pose=pose)  # fmt: skip
+    batch = FrameBatch(
+        image=torch.zeros(1, 4, 4, 3),
+        mask=torch.zeros(1, 4, 4),
+        boundary=torch.ones(1, 4, 4),
+        cameras=cams,
+        frame=torch.zeros(1, dtype=torch.long),
+        pose=pose,
+    )
     transforms, features = avatar.bone_transforms(batch)
     assert transforms.shape == (J, 4, 4) and features.shape == (66,)
     torch.testing.assert_close(features, pose[0, :22].reshape(-1))

@@ -66,8 +66,10 @@ def test_millimetre_translation_is_named(capture, tmp_path: Path) -> None:
     mm = _variant(root, tmp_path / "mm", cap, T=cap.T * 1000.0)
     code, rep = _check(mm, tmp_path / "out")  # stored vertices without faces: point-splat silhouettes
     assert code == 1 and not rep["ok"]
-    assert any(f.startswith("T is in millimetres where metres are expected (6 of 6 cameras") and "divide every T "
-               "by 1000" in f for f in rep["findings"]), rep["findings"]  # fmt: skip
+    assert any(
+        f.startswith("T is in millimetres where metres are expected (6 of 6 cameras") and "divide every T by 1000" in f
+        for f in rep["findings"]
+    ), rep["findings"]
     assert all(r["verdict"] == "T in millimetres" and r["iou"] < 0.1 for r in rep["cameras"])
 
 
@@ -82,15 +84,19 @@ def test_zju_layout_with_metres_is_named(capture, tmp_path: Path) -> None:
     np.save(root / "annots.npy", annots, allow_pickle=True)
     code, rep = _check(root, tmp_path / "out", "data=zju_mocap", "data.protocol=null", "body=procedural")
     assert code == 1 and all(r["verdict"] == "T in metres" for r in rep["cameras"])
-    assert any(f.startswith("T is in metres where millimetres are expected (6 of 6 cameras") and "multiply every T "
-               "by 1000" in f for f in rep["findings"]), rep["findings"]  # fmt: skip
+    assert any(
+        f.startswith("T is in metres where millimetres are expected (6 of 6 cameras")
+        and "multiply every T by 1000" in f
+        for f in rep["findings"]
+    ), rep["findings"]
 
 
 @pytest.mark.parametrize("order", [[0, 3, 2, 1, 4, 5], [0, 2, 4, 3, 1, 5]], ids=["two swapped", "mis-ordered list"])
 def test_swapped_and_misordered_cameras_are_named(capture, tmp_path: Path, order: list[int]) -> None:
     cap, root = capture
-    wrong = _variant(root, tmp_path / "wrong", cap, K_cv=cap.K_opencv[order], D=cap.D[order], R=cap.R[order],
-                     T=cap.T[order])  # fmt: skip
+    wrong = _variant(
+        root, tmp_path / "wrong", cap, K_cv=cap.K_opencv[order], D=cap.D[order], R=cap.R[order], T=cap.T[order]
+    )
     code, rep = _check(wrong, tmp_path / "out", "body=procedural")
     assert code == 1
     moved = [c for c in range(C) if order[c] != c]
@@ -138,8 +144,15 @@ def test_command_line_exit_status_and_missing_root(capture, tmp_path: Path) -> N
     cap, root = capture
     mm = _variant(root, tmp_path / "mm", cap, T=cap.T * 1000.0)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "framework.data.check", f"data.root={mm}", "data.downscale=1", "frames=2",
-           f"out_dir={tmp_path / 'cli'}"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.data.check",
+        f"data.root={mm}",
+        "data.downscale=1",
+        "frames=2",
+        f"out_dir={tmp_path / 'cli'}",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode == 1, proc.stderr[-2000:]
     assert "T is in millimetres" in proc.stdout and "| 0 | 01 |" in proc.stdout

@@ -18,7 +18,9 @@ def tool():
 def test_settings_parse_as_yaml_values_and_unknown_keys_are_refused(tool):
     assert tool.parse_setting("kept=fold_tolerance=null") == ("kept", {"fold_tolerance": None})
     assert tool.parse_setting("fast=prune_tolerance=0.045,refit_steps=600") == (
-        "fast", {"prune_tolerance": 0.045, "refit_steps": 600})  # fmt: skip
+        "fast",
+        {"prune_tolerance": 0.045, "refit_steps": 600},
+    )
     with pytest.raises(SystemExit, match="'fold' is not one of framework.prune's keys"):
         tool.parse_setting("x=fold=0.1")
     with pytest.raises(SystemExit, match="expected NAME=KEY=VALUE"):
@@ -30,12 +32,29 @@ def test_trade_rows_are_the_compactions_they_name(tool, tiny_avatar, tmp_path_fa
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     out = tmp_path_factory.mktemp("trade")
     untouched = dict(fold_tolerance=None, prune_tolerance=None, min_weight=0.0, sh_tolerance=0.0, refit_steps=0)
-    settings = {tool.AS_TRAINED: {}, "untouched": untouched,
-                "folded whole": dict(untouched, fold_tolerance=1.0)}  # fmt: skip
-    flags = [f"--setting={name}=" + ",".join(f"{k}={'null' if v is None else v}" for k, v in options.items())
-             for name, options in settings.items() if options]  # fmt: skip
-    tool.main(["--reference", str(ckpt), "--ckpt", str(ckpt), "--out", str(out), "--warmup", "1", "--repeats", "1",
-               "--rounds", "1", *flags])  # fmt: skip
+    settings = {tool.AS_TRAINED: {}, "untouched": untouched, "folded whole": dict(untouched, fold_tolerance=1.0)}
+    flags = [
+        f"--setting={name}=" + ",".join(f"{k}={'null' if v is None else v}" for k, v in options.items())
+        for name, options in settings.items()
+        if options
+    ]
+    tool.main(
+        [
+            "--reference",
+            str(ckpt),
+            "--ckpt",
+            str(ckpt),
+            "--out",
+            str(out),
+            "--warmup",
+            "1",
+            "--repeats",
+            "1",
+            "--rounds",
+            "1",
+            *flags,
+        ]
+    )
     rows = {r["setting"]: r for r in csv.DictReader(open(out / "compaction_trade.csv"))}
     assert list(rows) == [tool.AS_TRAINED, "untouched", "folded whole"]
     n = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]["avatar.gaussians.params.means"].shape[0]
@@ -48,16 +67,31 @@ def test_trade_rows_are_the_compactions_they_name(tool, tiny_avatar, tmp_path_fa
     assert abs(float(kept["psnr_novel_view"])) < 0.01 and abs(float(kept["psnr_novel_pose"])) < 0.01
     # a tolerance of 1.0 accepts any fold: F_a is gone (and with it its rows)
     assert int(folded["corrector_rows"]) == 0
-    assert "avatar.corrector.head.weight" not in torch.load(out / "folded_whole.ckpt", map_location="cpu",
-                                                            weights_only=False)["state_dict"]  # fmt: skip
+    assert (
+        "avatar.corrector.head.weight"
+        not in torch.load(out / "folded_whole.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    )
     assert float(folded["fps_ratio"]) > 0 and float(folded["smaller"]) > float(kept["smaller"])  # no MLP, no latents
     assert (out / "compaction_trade.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| untouched |" in (out / "compaction_trade.md").read_text()
     # resumable: a second run reuses the compact model made with the same options, and remakes one whose options
     # changed under the same name
     stamp = (out / "untouched.ckpt").stat().st_mtime_ns
-    again = ["--reference", str(ckpt), "--ckpt", str(ckpt), "--out", str(out), "--warmup", "1", "--repeats", "1",
-             "--rounds", "1", flags[0]]  # fmt: skip
+    again = [
+        "--reference",
+        str(ckpt),
+        "--ckpt",
+        str(ckpt),
+        "--out",
+        str(out),
+        "--warmup",
+        "1",
+        "--repeats",
+        "1",
+        "--rounds",
+        "1",
+        flags[0],
+    ]
     tool.main(again)
     assert (out / "untouched.ckpt").stat().st_mtime_ns == stamp
     tool.main([*again[:-1], flags[0].replace("refit_steps=0", "refit_steps=2")])
@@ -65,8 +99,9 @@ def test_trade_rows_are_the_compactions_they_name(tool, tiny_avatar, tmp_path_fa
 
 
 def test_target_is_met_inside_the_budget_and_no_loss_means_none(tool):
-    row = tool.TradeRow("s", "-", 1, 1, 2.0, psnr_novel_view=-0.29, psnr_novel_pose=0.1, novel_pose_fps=1.0,
-                        fps_ratio=1.5)  # fmt: skip
+    row = tool.TradeRow(
+        "s", "-", 1, 1, 2.0, psnr_novel_view=-0.29, psnr_novel_pose=0.1, novel_pose_fps=1.0, fps_ratio=1.5
+    )
     assert row.meets(1.5, 0.3) and not row.meets(1.51, 0.3) and not row.meets(1.5, 0.29)
     assert not row.meets(1.0, 0.0)  # the glossy scene's "no loss": -0.29 dB is a loss
     row.psnr_novel_view = 0.0

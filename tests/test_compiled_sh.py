@@ -46,8 +46,12 @@ def test_only_the_active_bands_are_read() -> None:
     coeffs, dirs, frames = _inputs(50, F64)
     noisy = coeffs.clone()
     noisy[:, 4:] = 1e6
-    torch.testing.assert_close(view_colour_dc_compiled(1, noisy, dirs, frames),
-                               view_colour_dc_compiled(1, coeffs, dirs, frames), rtol=0, atol=0)  # fmt: skip
+    torch.testing.assert_close(
+        view_colour_dc_compiled(1, noisy, dirs, frames),
+        view_colour_dc_compiled(1, coeffs, dirs, frames),
+        rtol=0,
+        atol=0,
+    )
 
 
 def test_a_bad_degree_is_refused() -> None:

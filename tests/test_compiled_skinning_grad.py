@@ -93,7 +93,7 @@ def test_float32_error_is_no_worse_than_the_torch_paths() -> None:
     runs = {
         "torch": _forward_backward(
             lambda *a: lbs_with_sh_frames(*a, "diag", torch.float32), g32, w.float(), T.float(), up32
-        ),  # fmt: skip
+        ),
         "compiled": _forward_backward(lambda *a: lbs_with_sh_frames_trainable(*a), g32, w.float(), T.float(), up32),
     }
     errors = {
@@ -144,8 +144,16 @@ def test_the_deformer_trains_through_the_compiled_skinning_and_agrees_with_torch
         loss = p.means.square().sum() + p.quats[:, 1:].sum() + p.log_scales.sum() + (out.sh_frames * 0.3).sum()
         loss = loss + out.aux["weight_std"].sum()
         loss.backward()
-        results[flag] = [p.means, p.quats, p.log_scales, out.sh_frames, g.means.grad, g.quats.grad, g.log_scales.grad,
-                         T.grad]  # fmt: skip
+        results[flag] = [
+            p.means,
+            p.quats,
+            p.log_scales,
+            out.sh_frames,
+            g.means.grad,
+            g.quats.grad,
+            g.log_scales.grad,
+            T.grad,
+        ]
         if flag:
             assert len(calls) == 1
             with torch.no_grad():  # no gradient wanted: not the trainable loop

@@ -131,9 +131,7 @@ def residual_deformer(body, compiled: bool, combine: str):
 
     load_plugins()
     torch.manual_seed(0)  # the same F_dw for both paths
-    d = REGISTRIES["deformer"].build(
-        "lbs_residual", grid_resolution=12, residual=combine, compiled_weights=compiled
-    )  # fmt: skip
+    d = REGISTRIES["deformer"].build("lbs_residual", grid_resolution=12, residual=combine, compiled_weights=compiled)
     bounds = torch.stack([body.rest_vertices.min(0).values - 0.1, body.rest_vertices.max(0).values + 0.1])
     d.bind(body, bounds)
     with torch.no_grad():

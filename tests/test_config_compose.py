@@ -79,8 +79,21 @@ def test_train_config_has_every_group_and_no_experiment_entry():
     text = (resources.files("framework.conf") / "train.yaml").read_text()
     defaults = OmegaConf.create(text).defaults
     names = [next(iter(d)) if not isinstance(d, str) else d for d in defaults]
-    for group in ("data", "body", "gaussians", "corrector", "deformer", "rasterizer", "loss", "densifier", "optim",
-                  "trainer", "logger", "callbacks", "paths"):  # fmt: skip
+    for group in (
+        "data",
+        "body",
+        "gaussians",
+        "corrector",
+        "deformer",
+        "rasterizer",
+        "loss",
+        "densifier",
+        "optim",
+        "trainer",
+        "logger",
+        "callbacks",
+        "paths",
+    ):
         assert group in names, f"train.yaml does not list the '{group}' group"
     assert "experiment" not in names
     assert names[-1] == "_self_"
@@ -148,8 +161,16 @@ def test_paper_full_runs_on_any_dataset_option(data: str):
 def test_own_capture_options_compose_with_paper_full():
     """An EasyMocap capture with an SMPL-X body: the data node takes the body's model file and gender (for SMPL-X
     hand PCA poses), and the composed nodes fit their constructors."""
-    cfg = _compose(["+experiment=paper_full", "data=easymocap", "data.root=/cap", "body=smplx",
-                    "body.model_path=/models/SMPLX_MALE.pkl", "body.gender=male"])  # fmt: skip
+    cfg = _compose(
+        [
+            "+experiment=paper_full",
+            "data=easymocap",
+            "data.root=/cap",
+            "body=smplx",
+            "body.model_path=/models/SMPLX_MALE.pkl",
+            "body.gender=male",
+        ]
+    )
     _check_components(cfg)
     assert cfg.data.body_model_path == "/models/SMPLX_MALE.pkl" and cfg.data.body_gender == "male"
     assert cfg.body.pose_input == "body" and cfg.body.betas is None  # null: the capture's fitted shape
@@ -209,7 +230,11 @@ def test_gpu_profile_picks_the_gsplat_backend_unless_told_otherwise(monkeypatch)
     monkeypatch.setattr("torch.cuda.is_available", lambda: True)
     real_find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: object() if n == "gsplat" else real_find_spec(n, *a))
-    assert choose_profile(["t", "+experiment=paper_full"]) == ["t", "profile=gpu", "rasterizer=gsplat",
-                                                                 "+experiment=paper_full"]  # fmt: skip
+    assert choose_profile(["t", "+experiment=paper_full"]) == [
+        "t",
+        "profile=gpu",
+        "rasterizer=gsplat",
+        "+experiment=paper_full",
+    ]
     kept = ["t", "+experiment=paper_full", "rasterizer=jax"]
     assert choose_profile(kept) == ["t", "profile=gpu", "+experiment=paper_full", "rasterizer=jax"]

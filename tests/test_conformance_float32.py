@@ -22,8 +22,19 @@ class Float32TorchRef(TorchRefRasterizer):
 
     supports_float64 = False
 
-    def render(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, cameras: Cameras,
-               *, sh_degree: int, background: Tensor | None = None, **planes: float) -> RenderOutput:  # fmt: skip
+    def render(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        sh: Tensor,
+        cameras: Cameras,
+        *,
+        sh_degree: int,
+        background: Tensor | None = None,
+        **planes: float,
+    ) -> RenderOutput:
         dtype = means.dtype
         ts = [t.float() for t in (means, quats, scales, opacities, sh)]
         bg = None if background is None else background.float()

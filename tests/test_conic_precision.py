@@ -55,8 +55,9 @@ class GsplatConic(TorchRefRasterizer):
         quats = quat_normalize(quats)  # the wrapper hands gsplat guarded unit quaternions, as torch_ref uses them
 
         def conics_of(scales_in: torch.Tensor) -> torch.Tensor:  # [C, N, 3]
-            *_, conics = _project_as_gsplat(means, quats, scales_in, opacities, world_to_cam, K, width, height, near,
-                                            far, EPS2D)  # fmt: skip
+            *_, conics = _project_as_gsplat(
+                means, quats, scales_in, opacities, world_to_cam, K, width, height, near, far, EPS2D
+            )
             return conics
 
         with torch.no_grad():
@@ -76,9 +77,15 @@ def needle(depth: float, short: float, tilt: float) -> Scene:
     about_z = torch.tensor([math.cos(spin / 2), 0.0, 0.0, math.sin(spin / 2)], dtype=F64)
     about_x = torch.tensor([math.cos(tilt / 2), math.sin(tilt / 2), 0.0, 0.0], dtype=F64)
     sh = 0.5 * torch.randn(1, 1, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
-    return Scene(torch.tensor([[0.0, 0.0, depth]], dtype=F64), quat_multiply(about_z, about_x)[None],
-                 torch.tensor([[short, 148.4, short]], dtype=F64), torch.tensor([0.9], dtype=F64), sh,
-                 extreme_camera(), 0)  # fmt: skip
+    return Scene(
+        torch.tensor([[0.0, 0.0, depth]], dtype=F64),
+        quat_multiply(about_z, about_x)[None],
+        torch.tensor([[short, 148.4, short]], dtype=F64),
+        torch.tensor([0.9], dtype=F64),
+        sh,
+        extreme_camera(),
+        0,
+    )
 
 
 # (depth, short, tilt): the first like the H200's needle; the last has the largest gradient error of the 36 scanned

@@ -41,8 +41,14 @@ def test_the_block_changes_nothing_unless_it_lowers_a_cpu_count(two_threads, thr
 
 def test_a_training_step_runs_its_small_work_on_one_thread_and_its_backward_on_all(tmp_path: Path) -> None:
     log = tmp_path / "threads.txt"
-    proc = _train(tmp_path, "trainer.max_steps=3", "threads=2", "small_work_threads=1",
-                  f"+loss.terms.probe={{name: thread_probe, weight: 1.0, log: '{log}'}}", faults={})  # fmt: skip
+    proc = _train(
+        tmp_path,
+        "trainer.max_steps=3",
+        "threads=2",
+        "small_work_threads=1",
+        f"+loss.terms.probe={{name: thread_probe, weight: 1.0, log: '{log}'}}",
+        faults={},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     moments = log.read_text().split("\n")[:-1]
     train = moments[: 3 * 3]  # three steps of loss, backward, optimizer (validation runs no backward)

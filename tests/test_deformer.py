@@ -139,8 +139,11 @@ def test_antipodal_blend_and_gradients_finite(body):
     out = make("lbs_residual", body)(g.replace(skin_weights=w), T)
     pos = body.bone_transforms(torch.randn(1, J, 3) * 1.5)[0]
     out2 = make("lbs_residual", body)(g, pos)
-    loss = sum(v.float().sum() for o in (out, out2) for v in (o.posed.means, o.posed.quats, o.posed.log_scales,
-               o.posed.sh, o.aux["weight_std"]))  # fmt: skip
+    loss = sum(
+        v.float().sum()
+        for o in (out, out2)
+        for v in (o.posed.means, o.posed.quats, o.posed.log_scales, o.posed.sh, o.aux["weight_std"])
+    )
     loss.backward()
     for o in (out, out2):
         for v in (o.posed.means, o.posed.quats, o.posed.log_scales, o.posed.sh):
@@ -205,9 +208,11 @@ def test_baked_weights_match_a_float64_svd_reference(body):
     S = R.mT @ A
     axes = quat_to_rotmat(g.quats.double())
     k = torch.einsum("nil,nij,njl->nl", axes, 0.5 * (S + S.mT), axes)
-    torch.testing.assert_close(out.means.double(), (A @ g.means.double().unsqueeze(-1)).squeeze(-1) + t,
-                               atol=2e-5, rtol=0)  # fmt: skip
+    torch.testing.assert_close(
+        out.means.double(), (A @ g.means.double().unsqueeze(-1)).squeeze(-1) + t, atol=2e-5, rtol=0
+    )
     torch.testing.assert_close(quat_to_rotmat(out.quats).double(), R @ axes, atol=2e-5, rtol=0)
     ok = k > 1e-6  # the negative row's stretch is clamped at the floor
-    torch.testing.assert_close(out.log_scales.double()[ok], (g.log_scales.double() + torch.log(k))[ok], atol=2e-5,
-                               rtol=0)  # fmt: skip
+    torch.testing.assert_close(
+        out.log_scales.double()[ok], (g.log_scales.double() + torch.log(k))[ok], atol=2e-5, rtol=0
+    )

@@ -45,8 +45,10 @@ def adam_steps(params, optimizers, k: int = 2) -> None:
     for opt in surgery.optimizer_list(optimizers):
         opt.zero_grad()
     for i in range(k):
-        loss = sum(((p.float() - 0.3 * (i + 1)) ** 2 * torch.linspace(1, 2, p.numel()).view_as(p)).sum()
-                   for p in params.values())  # fmt: skip
+        loss = sum(
+            ((p.float() - 0.3 * (i + 1)) ** 2 * torch.linspace(1, 2, p.numel()).view_as(p)).sum()
+            for p in params.values()
+        )
         loss.backward()
         for opt in surgery.optimizer_list(optimizers):
             opt.step()

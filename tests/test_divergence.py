@@ -27,8 +27,13 @@ DEFERRED = pytest.mark.parametrize("deferred", ["false", "true"])
 
 @DEFERRED
 def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_path, deferred):
-    proc = _train(tmp_path, "trainer.max_steps=40", "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25}",
-                  f"divergence.deferred={deferred}", faults={})  # fmt: skip
+    proc = _train(
+        tmp_path,
+        "trainer.max_steps=40",
+        "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25}",
+        f"divergence.deferred={deferred}",
+        faults={},
+    )
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
@@ -36,8 +41,9 @@ def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_
     assert "training diverged at step 25: non-finite loss term 'fault' = nan" in errors[0]
     ckpt_dir = _run_dirs(tmp_path)[-1] / "checkpoints"
     assert f"The last good checkpoint is {ckpt_dir / 'last.ckpt'}" in errors[0]
-    check_documented("training_diverged_stop", "train", f"a NaN loss at step 25: {FAULT}",
-                     normalise(errors[0], {"<tmp>": tmp_path}))  # fmt: skip
+    check_documented(
+        "training_diverged_stop", "train", f"a NaN loss at step 25: {FAULT}", normalise(errors[0], {"<tmp>": tmp_path})
+    )
     last = _load(ckpt_dir / "last.ckpt")
     assert last["global_step"] == 20 and _all_finite(last)  # checkpoint_every=10: nothing written after the NaN
     assert not (ckpt_dir / "final.ckpt").exists() and not (_run_dirs(tmp_path)[-1] / "eval").exists()
@@ -45,16 +51,26 @@ def test_nan_loss_stops_with_one_message_and_keeps_the_last_good_checkpoint(tmp_
 
 @DEFERRED
 def test_nan_gradient_rolls_back_lowers_the_learning_rates_and_finishes(tmp_path, deferred):
-    proc = _train(tmp_path, "trainer.max_steps=40", "divergence.action=rollback", f"divergence.deferred={deferred}",
-                  "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}", faults={})  # fmt: skip
+    proc = _train(
+        tmp_path,
+        "trainer.max_steps=40",
+        "divergence.action=rollback",
+        f"divergence.deferred={deferred}",
+        "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}",
+        faults={},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     notes = [line for line in proc.stderr.splitlines() if "training diverged" in line]
     assert len(notes) == 1, proc.stderr[-3000:]
     assert "at step 25: non-finite gradient of parameter group 'means', 'quats', 'log_scales'" in notes[0]
     ckpt_dir = _run_dirs(tmp_path)[-1] / "checkpoints"
     assert f"rolled back to {ckpt_dir / 'last.ckpt'} (step 20) with learning rates x0.5 (rollback 1 of 3)" in notes[0]
-    check_documented("training_diverged_rollback", "train", f"a NaN gradient at step 25 with "
-                     f"`divergence.action=rollback`: {FAULT}", normalise(notes[0], {"<tmp>": tmp_path}))  # fmt: skip
+    check_documented(
+        "training_diverged_rollback",
+        "train",
+        f"a NaN gradient at step 25 with `divergence.action=rollback`: {FAULT}",
+        normalise(notes[0], {"<tmp>": tmp_path}),
+    )
     last = _load(ckpt_dir / "last.ckpt")
     assert last["global_step"] == 40 and _all_finite(last)
     assert last["splatrig_divergence"] == {"lr_scale": 0.5, "rollbacks": 1}
@@ -65,8 +81,13 @@ def test_nan_gradient_rolls_back_lowers_the_learning_rates_and_finishes(tmp_path
 def test_deferred_verdict_is_read_before_the_checkpoint_that_follows_it(tmp_path):
     """A NaN at step 29, the last before the checkpoint of step 30: the deferred form must read its verdict before that
     checkpoint is written (without the wait it would read it during step 30, with last.ckpt already at step 30)."""
-    proc = _train(tmp_path, "trainer.max_steps=40", "divergence.deferred=true",
-                  "+loss.terms.fault={name: fault, weight: 1.0, at_step: 29}", faults={})  # fmt: skip
+    proc = _train(
+        tmp_path,
+        "trainer.max_steps=40",
+        "divergence.deferred=true",
+        "+loss.terms.fault={name: fault, weight: 1.0, at_step: 29}",
+        faults={},
+    )
     assert proc.returncode == 2, proc.stderr[-3000:]
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "training diverged at step 29: non-finite loss term 'fault' = nan" in errors[0]

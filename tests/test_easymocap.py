@@ -52,8 +52,9 @@ def body() -> ProceduralBody:
     return ProceduralBody(segments=8)
 
 
-def make_capture(body: ProceduralBody, C: int = 4, F: int = 3, size: int = 64, distortion: bool = True,
-                 seed: int = 0) -> Capture:  # fmt: skip
+def make_capture(
+    body: ProceduralBody, C: int = 4, F: int = 3, size: int = 64, distortion: bool = True, seed: int = 0
+) -> Capture:
     """Masks are the posed mesh's triangles projected with OpenCV's distortion model, so after undistortion they
     match the pinhole projection of the vertices; images are a per-camera colour ramp inside the mask."""
     g = torch.Generator().manual_seed(seed)
@@ -79,15 +80,30 @@ def make_capture(body: ProceduralBody, C: int = 4, F: int = 3, size: int = 64, d
             cv2.fillPoly(masks[f, c], list(np.round(uv[faces] * 16).astype(np.int32)), 1, cv2.LINE_8, shift=4)
             ramp = np.stack([40 + 2 * jj, 60 + 2 * ii, np.full_like(jj, 50 * c)], -1) % 256
             images[f, c][masks[f, c] > 0] = ramp[masks[f, c] > 0]
-        params.append({"poses": pose.numpy().reshape(1, -1), "Rh": Rh.numpy(), "Th": Th.numpy(),
-                       "shapes": (torch.randn(1, 10, generator=g) * 0.5).numpy()})  # fmt: skip
+        params.append(
+            {
+                "poses": pose.numpy().reshape(1, -1),
+                "Rh": Rh.numpy(),
+                "Th": Th.numpy(),
+                "shapes": (torch.randn(1, 10, generator=g) * 0.5).numpy(),
+            }
+        )
         verts.append(X.astype(np.float32))
-    return Capture(NAMES[:C] if C <= 4 else [f"{c + 1:02d}" for c in range(C)], K, D, R, T, images, masks, params,
-                   np.stack(verts))  # fmt: skip
+    return Capture(
+        NAMES[:C] if C <= 4 else [f"{c + 1:02d}" for c in range(C)], K, D, R, T, images, masks, params, np.stack(verts)
+    )
 
 
-def write_calibration(root: Path, names: list[str], K_cv: np.ndarray, D: np.ndarray, R: np.ndarray, T: np.ndarray,
-                      size: tuple[int, int] | None = None, Rot: np.ndarray | None = None) -> None:  # fmt: skip
+def write_calibration(
+    root: Path,
+    names: list[str],
+    K_cv: np.ndarray,
+    D: np.ndarray,
+    R: np.ndarray,
+    T: np.ndarray,
+    size: tuple[int, int] | None = None,
+    Rot: np.ndarray | None = None,
+) -> None:
     """intri.yml / extri.yml through cv2.FileStorage, with the keys EasyMocap's write_camera writes (Rot_: `Rot`, R
     by default)."""
     Rot = R if Rot is None else Rot
@@ -114,13 +130,20 @@ def write_calibration(root: Path, names: list[str], K_cv: np.ndarray, D: np.ndar
 
 def write_json(path: Path, people: list[dict]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps([{k: (np.asarray(v).tolist() if k != "id" else v) for k, v in p.items()}
-                                for p in people], indent=4))  # fmt: skip
+    path.write_text(
+        json.dumps([{k: (np.asarray(v).tolist() if k != "id" else v) for k, v in p.items()} for p in people], indent=4)
+    )
 
 
-def write_easymocap(root: Path, cap: Capture, mask_folder: str = "mask-schp", first: int = 100,
-                    output: str = "output-smpl-3d", extra_people: bool = False,
-                    fits_by_image_name: bool = False) -> Path:  # fmt: skip
+def write_easymocap(
+    root: Path,
+    cap: Capture,
+    mask_folder: str = "mask-schp",
+    first: int = 100,
+    output: str = "output-smpl-3d",
+    extra_people: bool = False,
+    fits_by_image_name: bool = False,
+) -> Path:
     """The capture as EasyMocap leaves it; image names start at `first`, fits are named by the frame's position as
     mv1p.py names them (or by the image name). Masks are written as SCHP-style colour labels (foreground colours with a
     zero red channel included); parameters as mv1p.py writes them (2-D lists)."""
@@ -139,8 +162,11 @@ def write_easymocap(root: Path, cap: Capture, mask_folder: str = "mask-schp", fi
         people = [p] + ([{**p, "id": 3, "Th": p["Th"] + 1.0}] if extra_people else [])
         fit = stem if fits_by_image_name else f"{f:06d}"
         write_json(root / output / "smpl" / f"{fit}.json", people)
-        write_json(root / output / "vertices" / f"{fit}.json", [{"id": 0, "vertices": cap.vertices[f]}]
-                   + ([{"id": 3, "vertices": cap.vertices[f] + 1.0}] if extra_people else []))  # fmt: skip
+        write_json(
+            root / output / "vertices" / f"{fit}.json",
+            [{"id": 0, "vertices": cap.vertices[f]}]
+            + ([{"id": 3, "vertices": cap.vertices[f] + 1.0}] if extra_people else []),
+        )
     return root
 
 
@@ -184,13 +210,15 @@ def test_reader_converter_and_zju_reader_agree(capture, tmp_path: Path, split: s
     em = EasyMocapDataset(str(em_root), split=split, test_views=["02"], body="procedural", boundary_px=2)
     assert em.train_views == [0, 2, 3] and em.test_views == [1]  # names -> indices; train = the other cameras
     assert em.mask_source == "mask-schp" and em.seq.stems[0] == "000100"
-    zju = ZjuMocapDataset(str(zju_root), split=split, protocol=None, train_views=[0, 2, 3], test_views=[1],
-                          boundary_px=2)  # fmt: skip
+    zju = ZjuMocapDataset(
+        str(zju_root), split=split, protocol=None, train_views=[0, 2, 3], test_views=[1], boundary_px=2
+    )
     assert_same_samples(em, zju)
     out = tmp_path / "converted"
     assert convert_main(["easymocap", str(em_root), str(out)]) == 0
-    conv = ZjuMocapDataset(str(out), split=split, protocol=None, train_views=[0, 2, 3], test_views=[1],
-                           boundary_px=2, body="procedural")  # fmt: skip
+    conv = ZjuMocapDataset(
+        str(out), split=split, protocol=None, train_views=[0, 2, 3], test_views=[1], boundary_px=2, body="procedural"
+    )
     assert_same_samples(em, conv)
     source = json.loads((out / "easymocap_source.json").read_text())
     assert source["frames"] == ["000100", "000101", "000102"] and source["mask_dir"] == "mask-schp"
@@ -301,9 +329,19 @@ def test_smplx_hand_pca_poses_pose_like_smplx(tmp_path: Path) -> None:
             for folder in ("images", "mask"):
                 (tmp_path / "cap" / folder / n).mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(tmp_path / "cap" / folder / n / f"{f:06d}.png"), np.full((16, 16), 255, np.uint8))
-        write_json(tmp_path / "cap" / "output" / "smpl" / f"{f:06d}.json",
-                   [{"id": 0, "Rh": Rh[f][None], "Th": Th[f][None], "poses": poses87[f][None],
-                     "shapes": np.zeros((1, 10)), "expression": np.zeros((1, 10))}])  # fmt: skip
+        write_json(
+            tmp_path / "cap" / "output" / "smpl" / f"{f:06d}.json",
+            [
+                {
+                    "id": 0,
+                    "Rh": Rh[f][None],
+                    "Th": Th[f][None],
+                    "poses": poses87[f][None],
+                    "shapes": np.zeros((1, 10)),
+                    "expression": np.zeros((1, 10)),
+                }
+            ],
+        )
     with pytest.raises(EasyMocapError, match="87 values.*body.model_path=/path/to/SMPLX_<GENDER>.pkl"):
         EasyMocapDataset(str(tmp_path / "cap"))
     ds = EasyMocapDataset(str(tmp_path / "cap"), body_model_path=str(model.parent))
@@ -316,8 +354,13 @@ def test_smplx_hand_pca_poses_pose_like_smplx(tmp_path: Path) -> None:
         full = torch.zeros(1, 55, 3, dtype=torch.float64)
         full[0, :22] = p[0, :66].reshape(22, 3)
         full[0, 22:25] = p[0, 78:87].reshape(3, 3)
-        ref = smplx_forward(model, full, torch.zeros(1, 10, dtype=torch.float64), left_hand_pose=p[:, 66:72],
-                            right_hand_pose=p[:, 72:78])[0]  # fmt: skip
+        ref = smplx_forward(
+            model,
+            full,
+            torch.zeros(1, 10, dtype=torch.float64),
+            left_hand_pose=p[:, 66:72],
+            right_hand_pose=p[:, 72:78],
+        )[0]
         ref = ref @ torch.from_numpy(cv2.Rodrigues(Rh[f])[0]).T + torch.from_numpy(Th[f])
         assert (ours - ref).abs().max() < 1e-5
 
@@ -339,8 +382,11 @@ def test_bad_rotation_pair_and_camera_folders(body: ProceduralBody, tmp_path: Pa
         EasyMocapDataset(str(root), body="procedural")
     write_easymocap(root, cap)
     (root / "images" / "02" / "000100.png").rename(root / "images" / "02" / "000099.png")
-    with pytest.raises(EasyMocapError, match=r"images/02: frame 0 is 000099 but in .*images/01 it is 000100; the "
-                                             r"cameras are out of step"):  # fmt: skip
+    with pytest.raises(
+        EasyMocapError,
+        match=r"images/02: frame 0 is 000099 but in .*images/01 it is 000100; the "
+        r"cameras are out of step",
+    ):
         EasyMocapDataset(str(root), body="procedural")
     (root / "images" / "02" / "000099.png").unlink()
     with pytest.raises(EasyMocapError, match=r"frame 0 is 000101 but .* it is 000100"):
@@ -358,15 +404,20 @@ def test_bad_params_folders_and_pose_lengths(body: ProceduralBody, tmp_path: Pat
     cap = make_capture(body, C=2, F=2, size=32, distortion=False, seed=5)
     root = write_easymocap(tmp_path / "cap", cap)
     write_json(root / "output" / "smplx" / "smpl" / "000000.json", [{"id": 0}])
-    with pytest.raises(EasyMocapError, match=r"several parameter folders \['output/smplx/smpl', "
-                                             r"'output-smpl-3d/smpl'\]; choose one with data.params_dir="):  # fmt: skip
+    with pytest.raises(
+        EasyMocapError,
+        match=r"several parameter folders \['output/smplx/smpl', "
+        r"'output-smpl-3d/smpl'\]; choose one with data.params_dir=",
+    ):
         EasyMocapDataset(str(root))
     with pytest.raises(EasyMocapError, match=r"000000\.json: expected keys Rh, Th, poses .* missing \['Rh', 'Th'"):
         EasyMocapDataset(str(root), params_dir="output/smplx/smpl")
     ok = EasyMocapDataset(str(root), params_dir="output-smpl-3d/smpl", body="procedural")
     assert ok.body_name == "procedural"
-    write_json(root / "output" / "smplx" / "smpl" / "000000.json",
-               [{"id": 0, "Rh": [[0, 0, 0]], "Th": [[0, 0, 0]], "poses": [[0.0] * 78]}])  # fmt: skip
+    write_json(
+        root / "output" / "smplx" / "smpl" / "000000.json",
+        [{"id": 0, "Rh": [[0, 0, 0]], "Th": [[0, 0, 0]], "poses": [[0.0] * 78]}],
+    )
     with pytest.raises(EasyMocapError, match=r"78 values \(SMPL\+H with hand PCA\), which splatrig does not read"):
         EasyMocapDataset(str(root), params_dir="output/smplx/smpl")
     (root / "output-smpl-3d" / "smpl" / "000001.json").unlink()

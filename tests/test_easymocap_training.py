@@ -15,12 +15,25 @@ from framework.data.studio import StudioSettings, generate
 from framework.data.zju.reader import ZjuSequence
 
 COMMON = [
-    "+experiment=paper_full", "body=procedural", "data.body=procedural", "data.downscale=1", "data.test_views=[3]",
-    "trainer.max_steps=30", "stages.stage1_steps=10", "gaussians.num=300", "deformer.grid_resolution=12",
-    "trainer.val_every=30", "callbacks.checkpoint_every=30", "callbacks.image_every=1000",
-    "callbacks.progress_bar=false", "eval.splits=[novel_view]", "eval.metrics=[psnr]", "metric=novel_view/psnr",
-    "logger=none", "threads=1",
-]  # fmt: skip
+    "+experiment=paper_full",
+    "body=procedural",
+    "data.body=procedural",
+    "data.downscale=1",
+    "data.test_views=[3]",
+    "trainer.max_steps=30",
+    "stages.stage1_steps=10",
+    "gaussians.num=300",
+    "deformer.grid_resolution=12",
+    "trainer.val_every=30",
+    "callbacks.checkpoint_every=30",
+    "callbacks.image_every=1000",
+    "callbacks.progress_bar=false",
+    "eval.splits=[novel_view]",
+    "eval.metrics=[psnr]",
+    "metric=novel_view/psnr",
+    "logger=none",
+    "threads=1",
+]
 
 
 def zju_to_easymocap(src: Path, dst: Path) -> None:
@@ -69,8 +82,9 @@ def test_same_psnr_in_both_layouts(tmp_path: Path, monkeypatch) -> None:
     settings = StudioSettings(resolution=32, views=4, frames=4, body="procedural", supersample=1)
     zju = generate(settings, tmp_path / "zju", workers=1, progress=False)
     zju_to_easymocap(zju, tmp_path / "easymocap")
-    psnr_zju = _train(tmp_path, "run_zju", "data=zju_mocap", f"data.root={zju}", "data.protocol=null",
-                      "data.train_views=[0,1,2]")  # fmt: skip
+    psnr_zju = _train(
+        tmp_path, "run_zju", "data=zju_mocap", f"data.root={zju}", "data.protocol=null", "data.train_views=[0,1,2]"
+    )
     psnr_em = _train(tmp_path, "run_em", "data=easymocap", f"data.root={tmp_path / 'easymocap'}")
     print(f"novel-view PSNR: zju {psnr_zju:.4f} dB, easymocap {psnr_em:.4f} dB")
     assert psnr_zju > 12.0, psnr_zju  # it rendered the subject, not nothing

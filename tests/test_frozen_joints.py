@@ -45,8 +45,15 @@ def _render(avatar, pose):
     root = torch.eye(4)[None]
     root[0, :3, 3] = torch.tensor([0.05, -0.02, 0.1])
     z = torch.zeros(2, SIZE, SIZE)
-    batch = FrameBatch(image=torch.zeros(2, SIZE, SIZE, 3), mask=z, boundary=z + 1, cameras=_cameras(),
-                       frame=torch.zeros(1, dtype=torch.long), pose=pose[None], root=root)  # fmt: skip
+    batch = FrameBatch(
+        image=torch.zeros(2, SIZE, SIZE, 3),
+        mask=z,
+        boundary=z + 1,
+        cameras=_cameras(),
+        frame=torch.zeros(1, dtype=torch.long),
+        pose=pose[None],
+        root=root,
+    )
     with torch.no_grad():
         out = avatar(batch, sh_degree=0)
     return out.render.rgb, out.posed.means
@@ -138,8 +145,10 @@ def test_weight_smoothness_is_measured_over_the_whole_skeleton(body, name):
             assert all(float(p.detach().abs().max()) == 0.0 for p in d.mlp[-1].parameters())
     transforms = torch.eye(4).expand(body.num_joints, 4, 4)
     means = gaussians.means.clone().requires_grad_(True)
-    outs = {k: d(gaussians.replace(means=means), transforms[: (body if k == "full" else frozen_body).num_joints])
-            for k, d in deformers.items()}  # fmt: skip
+    outs = {
+        k: d(gaussians.replace(means=means), transforms[: (body if k == "full" else frozen_body).num_joints])
+        for k, d in deformers.items()
+    }
     std_full, std_frozen = outs["full"].aux["weight_std"], outs["frozen"].aux["weight_std"]
     assert float(std_full.detach().max()) > 0.1  # some Gaussians do straddle joints
     tol = 1e-5 if name == "lbs" else 1e-4  # lbs_residual: softmax(log(w + 1e-6)) leaks up to J * 1e-6 per weight
@@ -150,9 +159,13 @@ def test_weight_smoothness_is_measured_over_the_whole_skeleton(body, name):
     (grad_full,) = torch.autograd.grad(std_full.sum(), means)
     torch.testing.assert_close(grad, grad_full, atol=1e-3, rtol=1e-3)
     # the comparison can fail: the folded weights' own spread misses the frozen boundaries
-    folded_std = weight_std(fold_weights(deformers["full"].weights(
-        torch.cat([gaussians.means[:, None], six_points(gaussians)], 1)), frozen_body.fold_index,
-        frozen_body.num_joints)[:, 1:])  # fmt: skip
+    folded_std = weight_std(
+        fold_weights(
+            deformers["full"].weights(torch.cat([gaussians.means[:, None], six_points(gaussians)], 1)),
+            frozen_body.fold_index,
+            frozen_body.num_joints,
+        )[:, 1:]
+    )
     assert float((std_full - folded_std).detach().max()) > 0.05
 
 
@@ -181,8 +194,9 @@ def test_weight_smoothness_with_frozen_joints_adds_the_residuals_change_on_the_k
     six = six_points(moved)  # [N, 6, 3]
     full6 = full.weights(six).double()  # [N, 6, J_full]
     index = frozen_body.fold_index.tolist()
-    grid6 = torch.stack([sum(full6[..., j] for j in range(len(index)) if index[j] == k)
-                         for k in range(frozen_body.num_joints)], dim=-1)  # fmt: skip
+    grid6 = torch.stack(
+        [sum(full6[..., j] for j in range(len(index)) if index[j] == k) for k in range(frozen_body.num_joints)], dim=-1
+    )
     w6 = frozen.refine(six, grid6.float()).double()
 
     def spread(w: torch.Tensor) -> torch.Tensor:

@@ -125,8 +125,10 @@ def _conics_as_gsplat(quats, scales, R, t, means, fx, fy, cx, cy, width, height,
     tx = f32.mul(z, torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, f32.mul(x, rz))))
     ty = f32.mul(z, torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, f32.mul(y, rz))))
     zero = torch.zeros_like(z)
-    J = torch.stack([f32.mul(fx, rz), zero, f32.mul(f32.mul(-fx, tx), rz2),
-                     zero, f32.mul(fy, rz), f32.mul(f32.mul(-fy, ty), rz2)], -1).reshape(*z.shape, 2, 3)  # fmt: skip
+    J = torch.stack(
+        [f32.mul(fx, rz), zero, f32.mul(f32.mul(-fx, tx), rz2), zero, f32.mul(fy, rz), f32.mul(f32.mul(-fy, ty), rz2)],
+        -1,
+    ).reshape(*z.shape, 2, 3)
     cov = f32.matmul(f32.matmul(J, covar_c), J.transpose(-1, -2))  # [C, N, 2, 2]
     a, c = f32.add(cov[..., 0, 0], eps2d), f32.add(cov[..., 1, 1], eps2d)  # add_blur
     b01, b10 = cov[..., 0, 1], cov[..., 1, 0]  # glm: m[1][0] is row 0, column 1
@@ -373,8 +375,13 @@ def test_gaussians_exactly_on_the_near_and_far_planes_are_culled(device):
         n32, f32 = torch.tensor(near), torch.tensor(far)  # the planes as float32 depths
         z = torch.stack([n32, torch.nextafter(n32, inf), f32, torch.nextafter(f32, -inf)])
         means = torch.stack([torch.zeros(4), torch.zeros(4), z], -1)  # [4, 3] on the optical axis
-        params = [means, torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1), z[:, None].repeat(1, 3) * 0.05,
-                  torch.full((4,), 0.9), torch.full((4, 1, 3), 0.5)]  # fmt: skip
+        params = [
+            means,
+            torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1),
+            z[:, None].repeat(1, 3) * 0.05,
+            torch.full((4,), 0.9),
+            torch.full((4, 1, 3), 0.5),
+        ]
         params = [p.to(device) for p in params]
         out = GsplatRasterizer().render(*params, cams, sh_degree=0, near=near, far=far)
         ref = RASTERIZERS.build("torch_ref").render(*params, cams, sh_degree=0, near=near, far=far)

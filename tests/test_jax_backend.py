@@ -146,9 +146,19 @@ def test_means2d_grad_is_the_screen_space_gradient():
         args = [to_jax(x, jdev) for x in ps]
         sh_j = args[4]
         (m2d, con, dep, col), (half, radii) = project(
-            args[0], args[1], args[2], sh_j, args[3], to_jax(cams.world_to_cam.double(), jdev),
-            to_jax(cams.K.double(), jdev), 0.01, 1e10, width=cams.width, height=cams.height, sh_degree=3,
-        )  # fmt: skip
+            args[0],
+            args[1],
+            args[2],
+            sh_j,
+            args[3],
+            to_jax(cams.world_to_cam.double(), jdev),
+            to_jax(cams.K.double(), jdev),
+            0.01,
+            1e10,
+            width=cams.width,
+            height=cams.height,
+            sh_degree=3,
+        )
         t = lambda a: to_torch(a, torch.device("cpu"))  # noqa: E731
         gi, pi = build_pairs(t(m2d), t(con), t(dep), t(half), t(radii), ps[3], cams.width, cams.height)
         npx = cams.num * cams.height * cams.width
@@ -159,11 +169,19 @@ def test_means2d_grad_is_the_screen_space_gradient():
 
         def loss(m):
             rgb, alpha, depth = composite(
-                m.reshape(-1, 2), con.reshape(-1, 3), dep.reshape(-1), col.reshape(-1, 3),
-                jax.numpy.broadcast_to(args[3], (C, N)).reshape(-1), jax.numpy.zeros(3),
-                to_jax(gi, jdev), to_jax(pi, jdev), to_jax(st, jdev).astype(bool),
-                num_pixels=npx, width=W, height=H,
-            )  # fmt: skip
+                m.reshape(-1, 2),
+                con.reshape(-1, 3),
+                dep.reshape(-1),
+                col.reshape(-1, 3),
+                jax.numpy.broadcast_to(args[3], (C, N)).reshape(-1),
+                jax.numpy.zeros(3),
+                to_jax(gi, jdev),
+                to_jax(pi, jdev),
+                to_jax(st, jdev).astype(bool),
+                num_pixels=npx,
+                width=W,
+                height=H,
+            )
             rgb = rgb.reshape(C, H * W, 3)
             return (rgb * wr).sum() + (alpha.reshape(C, H * W) * wr[:, 0]).sum() * 0.7 + 0.05 * depth.sum()
 

@@ -53,9 +53,16 @@ class _Reference(L.Callback):
 @pytest.mark.parametrize("every", [1, 3, 7])
 def test_logs_exactly_on_the_steps_lightning_writes(tmp_path, every):
     module, ref = _Tiny(), _Reference()
-    trainer = L.Trainer(max_steps=20, log_every_n_steps=every, callbacks=[ref], logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-                        default_root_dir=tmp_path)  # fmt: skip
+    trainer = L.Trainer(
+        max_steps=20,
+        log_every_n_steps=every,
+        callbacks=[ref],
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
     trainer.fit(module)
     ours = [step for step, log_now in module.decisions if log_now]
     assert ours == ref.writes

@@ -25,20 +25,35 @@ from plugins.body.procedural import JOINTS
 
 # A CMU-style skeleton (Y up, centimetres, T-pose, facing +Z): (name, parent, offset)
 BVH_JOINTS = [
-    ("Hips", None, (0, 90, 0)), ("Spine", "Hips", (0, 10, 0)), ("Spine1", "Spine", (0, 20, 0)),
-    ("Neck", "Spine1", (0, 20, 0)), ("Head", "Neck", (0, 10, 0)),
-    ("LeftShoulder", "Spine1", (5, 15, 0)), ("LeftArm", "LeftShoulder", (12, 0, 0)),
-    ("LeftForeArm", "LeftArm", (28, 0, 0)), ("LeftHand", "LeftForeArm", (25, 0, 0)),
-    ("RightShoulder", "Spine1", (-5, 15, 0)), ("RightArm", "RightShoulder", (-12, 0, 0)),
-    ("RightForeArm", "RightArm", (-28, 0, 0)), ("RightHand", "RightForeArm", (-25, 0, 0)),
-    ("LeftUpLeg", "Hips", (9, -5, 0)), ("LeftLeg", "LeftUpLeg", (0, -40, 0)), ("LeftFoot", "LeftLeg", (0, -40, 0)),
-    ("RightUpLeg", "Hips", (-9, -5, 0)), ("RightLeg", "RightUpLeg", (0, -40, 0)),
+    ("Hips", None, (0, 90, 0)),
+    ("Spine", "Hips", (0, 10, 0)),
+    ("Spine1", "Spine", (0, 20, 0)),
+    ("Neck", "Spine1", (0, 20, 0)),
+    ("Head", "Neck", (0, 10, 0)),
+    ("LeftShoulder", "Spine1", (5, 15, 0)),
+    ("LeftArm", "LeftShoulder", (12, 0, 0)),
+    ("LeftForeArm", "LeftArm", (28, 0, 0)),
+    ("LeftHand", "LeftForeArm", (25, 0, 0)),
+    ("RightShoulder", "Spine1", (-5, 15, 0)),
+    ("RightArm", "RightShoulder", (-12, 0, 0)),
+    ("RightForeArm", "RightArm", (-28, 0, 0)),
+    ("RightHand", "RightForeArm", (-25, 0, 0)),
+    ("LeftUpLeg", "Hips", (9, -5, 0)),
+    ("LeftLeg", "LeftUpLeg", (0, -40, 0)),
+    ("LeftFoot", "LeftLeg", (0, -40, 0)),
+    ("RightUpLeg", "Hips", (-9, -5, 0)),
+    ("RightLeg", "RightUpLeg", (0, -40, 0)),
     ("RightFoot", "RightLeg", (0, -40, 0)),
-]  # fmt: skip
+]
 
 
-def write_bvh(path: Path, frames: list[dict[str, tuple[float, float, float]]], frame_time: float,
-              root_positions: list[tuple[float, float, float]] | None = None, order: str = "ZXY") -> Path:  # fmt: skip
+def write_bvh(
+    path: Path,
+    frames: list[dict[str, tuple[float, float, float]]],
+    frame_time: float,
+    root_positions: list[tuple[float, float, float]] | None = None,
+    order: str = "ZXY",
+) -> Path:
     """A BVH file of BVH_JOINTS; frames[i][joint] = Euler angles in degrees, in `order` (default: 0)."""
     lines = ["HIERARCHY"]
 
@@ -86,8 +101,11 @@ def procedural_rig(arm_drop_deg: float = 0.0) -> Rig:
 
 def posed_joints(rig: Rig, motion: Motion, frame: int) -> np.ndarray:
     """World joint positions [J, 3] of the rig posed by the motion's frame (our forward kinematics + root)."""
-    G, _ = forward_kinematics(torch.tensor(motion.poses[frame : frame + 1], dtype=torch.float64),
-                              torch.tensor(rig.rest_joints), rig.parents.tolist())  # fmt: skip
+    G, _ = forward_kinematics(
+        torch.tensor(motion.poses[frame : frame + 1], dtype=torch.float64),
+        torch.tensor(rig.rest_joints),
+        rig.parents.tolist(),
+    )
     root = np.eye(4) if motion.roots is None else motion.roots[frame].astype(np.float64)
     return (root[:3, :3] @ G[0, :, :3, 3].numpy().T).T + root[:3, 3]
 
@@ -105,9 +123,11 @@ def test_bvh_euler_channels_follow_their_listed_order(tmp_path):
     expected = Rotation.from_euler("ZXY", angles, degrees=True).as_matrix()
     assert np.allclose(src.global_rotations[0, 0], expected, atol=1e-6)
     arm = src.joint_names.index("LeftArm")  # world rotation = hips * (shoulder = I) * arm
-    assert np.allclose(src.global_rotations[0, arm], expected @ Rotation.from_euler("ZXY", (10, 20, 30),
-                                                                                   degrees=True).as_matrix(),
-                       atol=1e-6)  # fmt: skip
+    assert np.allclose(
+        src.global_rotations[0, arm],
+        expected @ Rotation.from_euler("ZXY", (10, 20, 30), degrees=True).as_matrix(),
+        atol=1e-6,
+    )
     assert src.fps == pytest.approx(30.0)
     assert src.semantic["LeftArm"] == "shoulder.L" and src.semantic["Spine1"] == "chest"
 
@@ -176,8 +196,9 @@ def test_amass_left_shoulder_raises_the_avatars_left_arm(tmp_path):
     assert motion.fps == pytest.approx(120.0)
     rest, raised = posed_joints(rig, motion, 0), posed_joints(rig, motion, 1)
     # each avatar bone points where the SMPL bone points: AMASS's Rx(90) * the shoulder's Rz(70) * the rest bone
-    assert np.allclose(bone(rig, rest, "upperarm.L", "lowerarm.L"), _smpl_world_dir("left_shoulder", "left_elbow"),
-                       atol=1e-6)  # fmt: skip
+    assert np.allclose(
+        bone(rig, rest, "upperarm.L", "lowerarm.L"), _smpl_world_dir("left_shoulder", "left_elbow"), atol=1e-6
+    )
     raised_dir = _smpl_world_dir("left_shoulder", "left_elbow", Rotation.from_rotvec([0, 0, np.radians(70)]))
     assert np.allclose(bone(rig, raised, "upperarm.L", "lowerarm.L"), raised_dir, atol=1e-6)
     assert raised_dir[2] > 0.9  # i.e. up
@@ -243,9 +264,16 @@ def test_studio_params_folder_reads_back_and_a_wrong_body_is_refused(tmp_path):
     rh, th = rng.normal(0, 1, (3, 3)), rng.normal(0, 1, (3, 3))
     (tmp_path / "params").mkdir()
     for i in range(3):  # written as the studio writes them (framework.data.zju.layout)
-        save_pickled_dict(tmp_path / "params" / f"{i}.npy", {"poses": poses[i].reshape(1, -1), "Rh": rh[i:i + 1],
-                                                              "Th": th[i:i + 1], "shapes": np.zeros((1, 10)),
-                                                              "body": "procedural"})  # fmt: skip
+        save_pickled_dict(
+            tmp_path / "params" / f"{i}.npy",
+            {
+                "poses": poses[i].reshape(1, -1),
+                "Rh": rh[i : i + 1],
+                "Th": th[i : i + 1],
+                "shapes": np.zeros((1, 10)),
+                "body": "procedural",
+            },
+        )
     motion = read_motion_file(tmp_path, None, 17)
     assert np.allclose(motion.poses, poses)
     assert np.allclose(motion.roots[:, :3, :3], Rotation.from_rotvec(rh).as_matrix(), atol=1e-6)
@@ -276,16 +304,21 @@ def test_bvh_moves_the_left_arm_gaussians_of_a_trained_avatar_up(tiny, tmp_path,
     with pytest.raises(SplatrigError, match="missing.bvh"):
         load_motion(module, dm, str(tmp_path / "missing.bvh"))
     names = module.avatar.body.joint_names
-    owner = module.avatar.gaussians.params["skin_weights"].argmax(1) if "skin_weights" in \
-        module.avatar.gaussians.params else None  # fmt: skip
+    owner = (
+        module.avatar.gaussians.params["skin_weights"].argmax(1)
+        if "skin_weights" in module.avatar.gaussians.params
+        else None
+    )
     if owner is None:
         module.bake_weights()
         owner = module.avatar.gaussians.params["skin_weights"].argmax(1)
     left = torch.isin(owner, torch.tensor([names.index(n) for n in ("lowerarm.L", "hand.L")]))
     right = torch.isin(owner, torch.tensor([names.index(n) for n in ("lowerarm.R", "hand.R")]))
     assert left.sum() > 3 and right.sum() > 3
-    z = [posed_gaussians(module, torch.as_tensor(motion.poses[i]), torch.as_tensor(motion.roots[i])).means[:, 2]
-         for i in range(2)]  # fmt: skip
+    z = [
+        posed_gaussians(module, torch.as_tensor(motion.poses[i]), torch.as_tensor(motion.roots[i])).means[:, 2]
+        for i in range(2)
+    ]
     rise = float((z[1] - z[0])[left].mean())
     assert rise > 0.25  # forearm and hand rise by tens of centimetres
     # the right arm stays, up to the little weight the paper's additive residual w0 + F_dw may give any joint (the
@@ -300,8 +333,17 @@ def test_render_entry_point_plays_a_bvh_at_the_video_frame_rate(tiny, tmp_path):
     path = write_bvh(tmp_path / "wave.bvh", frames, 0.025)
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(cache))
     out = tmp_path / "video"
-    cmd = [sys.executable, "-m", "framework.render", f"ckpt={ckpt}", f"motion={path}", "cameras=fixed", "fps=20",
-           "resolution=32", f"out_dir={out}"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.render",
+        f"ckpt={ckpt}",
+        f"motion={path}",
+        "cameras=fixed",
+        "fps=20",
+        "resolution=32",
+        f"out_dir={out}",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "rendering" in proc.stderr  # the progress bar

@@ -88,14 +88,16 @@ def test_extremes_finite_and_match_float64_brute_force(backends, scene) -> None:
     c = scene.cameras
     ref = reference_render(*scene.tensors(), c.K, c.world_to_cam, c.width, c.height, scene.sh_degree)
     with torch.no_grad():
-        out = numba_backend.render(*(t.float() for t in scene.tensors()), c.to("cpu", torch.float32),
-                                   sh_degree=scene.sh_degree)  # fmt: skip
+        out = numba_backend.render(
+            *(t.float() for t in scene.tensors()), c.to("cpu", torch.float32), sh_degree=scene.sh_degree
+        )
     assert all_finite(out.rgb, out.alpha, out.depth, out.means2d)
     assert float(out.alpha.min()) >= 0.0 and float(out.alpha.max()) <= 1.0
     for key in ("rgb", "alpha", "depth"):
         scale = max(1.0, float(ref[key].abs().max())) if key == "depth" else 1.0
-        assert within_tolerance_except_jumps(getattr(out, key), ref[key], EXTREME_VALUE_TOL * scale,
-                                             EXTREME_JUMP * scale), key  # fmt: skip
+        assert within_tolerance_except_jumps(
+            getattr(out, key), ref[key], EXTREME_VALUE_TOL * scale, EXTREME_JUMP * scale
+        ), key
 
 
 def _render_and_backward(backend, scene, seed: int, background=None):
@@ -151,8 +153,9 @@ def test_gradients_at_clamped_alpha_and_early_termination(backends) -> None:
     pixels terminate after a few layers. The float64 gradients still equal torch_ref's."""
     numba_backend, torch_ref = backends
     scene = make_random_scene(9, 600, 40, 32, dtype=torch.float64, sh_degree=1, max_opacity=0.95)
-    scene.opacities.copy_(0.9999 + 0.0001 * torch.rand(600, generator=torch.Generator().manual_seed(9),
-                                                        dtype=torch.float64))  # fmt: skip
+    scene.opacities.copy_(
+        0.9999 + 0.0001 * torch.rand(600, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    )
     scene.scales.mul_(30.0)  # wide footprints: sigma < 1e-3 near most centres, where alpha is clamped at 0.999
     got, got_grads = _render_and_backward(numba_backend, scene, 9)
     ref, ref_grads = _render_and_backward(torch_ref, scene, 9)
@@ -220,8 +223,10 @@ def test_compiled_projection_gradients_equal_autograd_through_project_gaussians(
         params = [t.clone().requires_grad_() for t in (means, quats, scales)]
         p = project(*params, scene.opacities, cams.K, cams.world_to_cam, cams.width, cams.height, 0.01, 1e10)
         valid = p.valid
-        w = [torch.rand(t.shape, generator=torch.Generator().manual_seed(i), dtype=t.dtype) for i, t in
-             enumerate((p.means2d, p.conics, p.depths))]  # fmt: skip
+        w = [
+            torch.rand(t.shape, generator=torch.Generator().manual_seed(i), dtype=t.dtype)
+            for i, t in enumerate((p.means2d, p.conics, p.depths))
+        ]
         loss = ((p.means2d * w[0]).sum(-1) + (p.conics * w[1]).sum(-1) + p.depths * w[2])[valid].sum()
         loss.backward()
         outs.append(p)

@@ -108,8 +108,11 @@ def loss_cases(draw: st.DrawFn):
     image = torch.rand(1, h, w, 3, generator=g) if draw(st.booleans()) else rgb.clamp(0, 1).clone()
 
     def mask(kind: str) -> torch.Tensor:
-        return {"empty": torch.zeros(1, h, w), "full": torch.ones(1, h, w),
-                "random": torch.rand(1, h, w, generator=g).round()}[kind]  # fmt: skip
+        return {
+            "empty": torch.zeros(1, h, w),
+            "full": torch.ones(1, h, w),
+            "random": torch.rand(1, h, w, generator=g).round(),
+        }[kind]
 
     kinds = st.sampled_from(["empty", "full", "random"])
     m, b = mask(draw(kinds)), mask(draw(kinds))
@@ -151,8 +154,9 @@ def test_loss_extremes(case) -> None:
         values[name] = got
         tol = 2e-5 if name == "dssim" else 1e-5 * abs(want) + 1e-6
         assert abs(float(got.detach()) - want) <= tol, f"{kind}: {name} {float(got.detach())} vs {want}"
-    composite = CompositeLoss({"l1": {"weight": 0.8}, "alpha": {"weight": 10.0}, "weight_std": {"weight": 0.2},
-                               "dssim": {"weight": 0.2}})  # fmt: skip
+    composite = CompositeLoss(
+        {"l1": {"weight": 0.8}, "alpha": {"weight": 10.0}, "weight_std": {"weight": 0.2}, "dssim": {"weight": 0.2}}
+    )
     total, terms = composite(render, batch, aux)
     want_total = 0.8 * expected["l1"] + 10 * expected["alpha"] + 0.2 * expected["weight_std"] + 0.2 * expected["dssim"]
     assert abs(float(total.detach()) - want_total) <= 1e-5 * abs(want_total) + 1e-5, kind
@@ -184,8 +188,13 @@ def test_lpips_extremes(fill: float) -> None:
     image = torch.rand(1, 32, 32, 3, generator=torch.Generator().manual_seed(0))
     cams = Cameras(torch.eye(3)[None], torch.eye(4)[None], 32, 32)
     render = RenderOutput(rgb, rgb[..., :1], None, means2d=torch.zeros(1, 0, 2), radii=torch.zeros(1, 0))
-    batch = FrameBatch(image=image, mask=torch.ones(1, 32, 32), boundary=torch.ones(1, 32, 32), cameras=cams,
-                       frame=torch.zeros(1, dtype=torch.long))  # fmt: skip
+    batch = FrameBatch(
+        image=image,
+        mask=torch.ones(1, 32, 32),
+        boundary=torch.ones(1, 32, 32),
+        cameras=cams,
+        frame=torch.zeros(1, dtype=torch.long),
+    )
     term = LOSSES.build("lpips")
     value = term(render, batch, {})
     value.backward()

@@ -250,8 +250,13 @@ def test_weight_lookup_at_non_finite_and_far_points() -> None:
     (w * proj).sum().backward()
     lo, hi = bounds.double()
     edge = torch.maximum(torch.minimum(x.detach().double().nan_to_num(nan=-inf), hi), lo).requires_grad_()
-    ref = F.grid_sample(vol.double()[None], (2 * (edge - lo) / (hi - lo) - 1)[None, None, None], mode="bilinear",
-                        padding_mode="border", align_corners=True)[0, :, 0, 0].t()  # fmt: skip
+    ref = F.grid_sample(
+        vol.double()[None],
+        (2 * (edge - lo) / (hi - lo) - 1)[None, None, None],
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )[0, :, 0, 0].t()
     ref = ref / ref.sum(-1, keepdim=True)
     (ref * proj.double()).sum().backward()
     torch.testing.assert_close(w.double(), ref.detach(), atol=1e-6, rtol=0)

@@ -26,8 +26,9 @@ def test_pairs_cover_every_contributing_pixel_in_depth_order(seed: int, cams: in
     ent, pix = sort_pairs_by_pixel(ent, pix, cams * H * W)
 
     # brute force: alpha of every entry at every pixel centre of its camera
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
-                            indexing="ij")  # fmt: skip
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     dx = m2d[:, 0, None, None] - xs  # [M, H, W]
     dy = m2d[:, 1, None, None] - ys
     sigma = 0.5 * (con[:, 0, None, None] * dx**2 + con[:, 2, None, None] * dy**2) + con[:, 1, None, None] * dx * dy

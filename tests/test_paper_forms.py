@@ -23,10 +23,20 @@ def _alpha_case() -> tuple[RenderOutput, FrameBatch]:
     mask = torch.tensor([[[1.0, 0.0], [0.0, 1.0]], [[1.0, 1.0], [0.0, 0.0]]], dtype=D64)
     boundary = torch.tensor([[[1.0, 1.0], [1.0, 0.0]], [[1.0, 1.0], [1.0, 1.0]]], dtype=D64)
     cams = Cameras(torch.eye(3).expand(2, 3, 3), torch.eye(4).expand(2, 4, 4), 2, 2)
-    render = RenderOutput(rgb=torch.zeros(2, 2, 2, 3, dtype=D64), alpha=alpha, depth=None,
-                          means2d=torch.zeros(2, 0, 2), radii=torch.zeros(2, 0))  # fmt: skip
-    batch = FrameBatch(image=torch.zeros(2, 2, 2, 3, dtype=D64), mask=mask, boundary=boundary, cameras=cams,
-                       frame=torch.zeros(2, dtype=torch.long))  # fmt: skip
+    render = RenderOutput(
+        rgb=torch.zeros(2, 2, 2, 3, dtype=D64),
+        alpha=alpha,
+        depth=None,
+        means2d=torch.zeros(2, 0, 2),
+        radii=torch.zeros(2, 0),
+    )
+    batch = FrameBatch(
+        image=torch.zeros(2, 2, 2, 3, dtype=D64),
+        mask=mask,
+        boundary=boundary,
+        cameras=cams,
+        frame=torch.zeros(2, dtype=torch.long),
+    )
     return render, batch
 
 
@@ -42,8 +52,9 @@ def test_alpha_loss_forms(norm: str, expected: float):
     """Image 0: errors 0.1, 0.2, 0 and (0.4 under M_b = 0, ignored); image 1 is perfect."""
     render, batch = _alpha_case()
     alpha = render.alpha.clone().requires_grad_(True)
-    out = LOSSES.build("alpha", norm=norm)(RenderOutput(render.rgb, alpha, None, render.means2d, render.radii),
-                                           batch, {})  # fmt: skip
+    out = LOSSES.build("alpha", norm=norm)(
+        RenderOutput(render.rgb, alpha, None, render.means2d, render.radii), batch, {}
+    )
     assert out.item() == pytest.approx(expected, rel=1e-12)
     out.backward()
     assert torch.isfinite(alpha.grad).all()  # image 1 has zero error: the norm's gradient there is 0, not NaN
@@ -60,11 +71,20 @@ def test_alpha_loss_default_is_the_papers_reading():
 
 def _constant_pair(a: float, b: float, size: int = 13) -> tuple[RenderOutput, FrameBatch]:
     cams = Cameras(torch.eye(3)[None], torch.eye(4)[None], size, size)
-    render = RenderOutput(rgb=torch.full((1, size, size, 3), a, dtype=D64), alpha=torch.zeros(1, size, size, 1),
-                          depth=None, means2d=torch.zeros(1, 0, 2), radii=torch.zeros(1, 0))  # fmt: skip
-    batch = FrameBatch(image=torch.full((1, size, size, 3), b, dtype=D64), mask=torch.zeros(1, size, size),
-                       boundary=torch.ones(1, size, size), cameras=cams,
-                       frame=torch.zeros(1, dtype=torch.long))  # fmt: skip
+    render = RenderOutput(
+        rgb=torch.full((1, size, size, 3), a, dtype=D64),
+        alpha=torch.zeros(1, size, size, 1),
+        depth=None,
+        means2d=torch.zeros(1, 0, 2),
+        radii=torch.zeros(1, 0),
+    )
+    batch = FrameBatch(
+        image=torch.full((1, size, size, 3), b, dtype=D64),
+        mask=torch.zeros(1, size, size),
+        boundary=torch.ones(1, size, size),
+        cameras=cams,
+        frame=torch.zeros(1, dtype=torch.long),
+    )
     return render, batch
 
 
@@ -90,10 +110,16 @@ def test_dssim_is_one_minus_kornia_ssim():
     g = torch.Generator().manual_seed(7)
     rgb, image = (torch.rand(2, 19, 23, 3, generator=g, dtype=D64) for _ in range(2))
     cams = Cameras(torch.eye(3).expand(2, 3, 3), torch.eye(4).expand(2, 4, 4), 23, 19)
-    render = RenderOutput(rgb=rgb, alpha=torch.zeros(2, 19, 23, 1), depth=None, means2d=torch.zeros(2, 0, 2),
-                          radii=torch.zeros(2, 0))  # fmt: skip
-    batch = FrameBatch(image=image, mask=torch.zeros(2, 19, 23), boundary=torch.ones(2, 19, 23), cameras=cams,
-                       frame=torch.zeros(2, dtype=torch.long))  # fmt: skip
+    render = RenderOutput(
+        rgb=rgb, alpha=torch.zeros(2, 19, 23, 1), depth=None, means2d=torch.zeros(2, 0, 2), radii=torch.zeros(2, 0)
+    )
+    batch = FrameBatch(
+        image=image,
+        mask=torch.zeros(2, 19, 23),
+        boundary=torch.ones(2, 19, 23),
+        cameras=cams,
+        frame=torch.zeros(2, dtype=torch.long),
+    )
     a, b = rgb.permute(0, 3, 1, 2), image.permute(0, 3, 1, 2)
     ours = LOSSES.build("dssim", compiled=False)(render, batch, {}).item()
     assert ours == pytest.approx(1 - ssim(a, b, 11, max_val=1.0).mean().item(), abs=1e-12)
@@ -116,8 +142,13 @@ def _two_bone_case():
     T[1, :3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=D64)
     T[1, :3, 3] = torch.tensor([0.2, -0.4, 0.6], dtype=D64)
     x = torch.tensor([[0.3, 0.1, -0.2]], dtype=D64)
-    g = Gaussians(means=x, quats=torch.tensor([[1.0, 0, 0, 0]], dtype=D64), log_scales=torch.zeros(1, 3, dtype=D64),
-                  opacity_logits=torch.zeros(1, dtype=D64), sh=torch.zeros(1, 1, 3, dtype=D64))  # fmt: skip
+    g = Gaussians(
+        means=x,
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=D64),
+        log_scales=torch.zeros(1, 3, dtype=D64),
+        opacity_logits=torch.zeros(1, dtype=D64),
+        sh=torch.zeros(1, 1, 3, dtype=D64),
+    )
     return g, torch.tensor([[0.5, 0.5]], dtype=D64), T
 
 
@@ -158,9 +189,13 @@ def test_rigid_centres_against_a_float64_polar_reference():
     w = torch.rand(N, J, generator=g, dtype=D64)
     w = w / w.sum(-1, keepdim=True)
     means = torch.randn(N, 3, generator=g, dtype=D64)
-    gs = Gaussians(means=means, quats=torch.tensor([[1.0, 0, 0, 0]], dtype=D64).repeat(N, 1),
-                   log_scales=torch.zeros(N, 3, dtype=D64), opacity_logits=torch.zeros(N, dtype=D64),
-                   sh=torch.zeros(N, 1, 3, dtype=D64))  # fmt: skip
+    gs = Gaussians(
+        means=means,
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=D64).repeat(N, 1),
+        log_scales=torch.zeros(N, 3, dtype=D64),
+        opacity_logits=torch.zeros(N, dtype=D64),
+        sh=torch.zeros(N, 1, 3, dtype=D64),
+    )
     A = torch.einsum("nk,kij->nij", w, T[:, :3, :3])
     t = w @ T[:, :3, 3]
     u, _, vh = torch.linalg.svd(A)

@@ -83,8 +83,17 @@ def _batches(body, n: int = 3) -> list[FrameBatch]:
     out = []
     for i in range(n):
         pose = 0.3 * torch.randn(1, body.num_joints, 3, generator=gen)
-        out.append(FrameBatch(image=torch.zeros(2, SIZE, SIZE, 3), mask=z, boundary=z + 1, cameras=_cameras(),
-                              frame=torch.tensor([i]), pose=pose, root=torch.eye(4)[None]))  # fmt: skip
+        out.append(
+            FrameBatch(
+                image=torch.zeros(2, SIZE, SIZE, 3),
+                mask=z,
+                boundary=z + 1,
+                cameras=_cameras(),
+                frame=torch.tensor([i]),
+                pose=pose,
+                root=torch.eye(4)[None],
+            )
+        )
     return out
 
 
@@ -199,8 +208,9 @@ def test_a_pose_dependent_corrector_is_measured_on_the_renders_and_kept():
     # measured against an independent render: the folded avatar's own images differ from the corrected ones by that
     assert fold_corrector(folded, batches, sh_degree=1, tolerance=1.0).folded
     with torch.no_grad():
-        alpha = torch.stack([torch.maximum(folded(b, sh_degree=1).render.alpha, avatar(b, sh_degree=1).render.alpha)
-                             for b in batches])  # fmt: skip
+        alpha = torch.stack(
+            [torch.maximum(folded(b, sh_degree=1).render.alpha, avatar(b, sh_degree=1).render.alpha) for b in batches]
+        )
     covered = (alpha >= 1 / 255).expand(-1, -1, -1, -1, 3)
     rms = float((_renders(folded, batches, sh_degree=1) - before)[covered].square().mean().sqrt())
     assert 0.1 < covered.float().mean() < 0.9 and abs(rms - fold.render_rms) < 1e-6

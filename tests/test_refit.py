@@ -101,8 +101,14 @@ def test_with_a_refit_the_partial_fold_gets_its_own_budget(tiny, tmp_path, monke
     torch.save(stored, strong)
     folds = {}
     for steps in (0, 2):
-        report = prune_checkpoint(strong, tmp_path / f"compact{steps}.ckpt", measure=False, device="cpu",
-                                  prune_tolerance=0.03, refit_steps=steps)  # fmt: skip
+        report = prune_checkpoint(
+            strong,
+            tmp_path / f"compact{steps}.ckpt",
+            measure=False,
+            device="cpu",
+            prune_tolerance=0.03,
+            refit_steps=steps,
+        )
         assert report.render_rms > 0.02  # pruning went well past the fold tolerance
         folds[steps] = report.corrector_fold
     assert not folds[0]["folded"] and folds[0]["folded_gaussians"] == 0

@@ -33,14 +33,31 @@ def _write_runs(root: Path, seeds: list[int]) -> None:
     for experiment, (nv, np_) in PSNR.items():
         for s in seeds:
             run = root / f"+experiment={experiment},seed={s}"
-            summary = {"novel_view/psnr": nv[s], "novel_pose/psnr": np_[s], "novel_view/bbox/psnr": nv[s] - 5,
-                       "novel_pose/bbox/psnr": np_[s] - 5, "novel_view/ssim": 0.97, "novel_pose/ssim": 0.96,
-                       "novel_view/lpips_alex": 0.05, "novel_pose/lpips_alex": 0.06}  # fmt: skip
-            write_run_record(run, experiment=experiment, config_name="ablations",
-                             overrides=[f"+experiment={experiment}", f"seed={s}", *SHARED, "threads=1"], seed=s,
-                             profile="ablation", data="synthetic_studio", steps=1800, max_steps=1800,
-                             train_seconds=480.0 + s, run_seconds=540.0, num_gaussians=9000,
-                             metrics=metrics_from_summary(summary))  # fmt: skip
+            summary = {
+                "novel_view/psnr": nv[s],
+                "novel_pose/psnr": np_[s],
+                "novel_view/bbox/psnr": nv[s] - 5,
+                "novel_pose/bbox/psnr": np_[s] - 5,
+                "novel_view/ssim": 0.97,
+                "novel_pose/ssim": 0.96,
+                "novel_view/lpips_alex": 0.05,
+                "novel_pose/lpips_alex": 0.06,
+            }
+            write_run_record(
+                run,
+                experiment=experiment,
+                config_name="ablations",
+                overrides=[f"+experiment={experiment}", f"seed={s}", *SHARED, "threads=1"],
+                seed=s,
+                profile="ablation",
+                data="synthetic_studio",
+                steps=1800,
+                max_steps=1800,
+                train_seconds=480.0 + s,
+                run_seconds=540.0,
+                num_gaussians=9000,
+                metrics=metrics_from_summary(summary),
+            )
 
 
 @pytest.fixture()
@@ -106,8 +123,13 @@ def test_runs_from_two_parts_give_the_known_table(parts, tmp_path):
     table = build_table(runs)
     assert table.shared == tuple(sorted(SHARED))
     rows = {r.experiment: r for r in table.rows}
-    assert [r.experiment for r in table.rows] == ["paper_full", "all_sh_correction", "no_corrector", "no_alpha_loss",
-                                                  "no_weight_std_loss"]  # the paper's order  # fmt: skip
+    assert [r.experiment for r in table.rows] == [
+        "paper_full",
+        "all_sh_correction",
+        "no_corrector",
+        "no_alpha_loss",
+        "no_weight_std_loss",
+    ]  # the paper's order
 
     def cell(row, split, region="image"):
         return rows[row].cells[(region, split, "psnr")]
@@ -128,8 +150,14 @@ def test_runs_from_two_parts_give_the_known_table(parts, tmp_path):
     assert "## body box" in markdown and "data=synthetic_studio_realistic profile=ablation" in markdown
     out = tmp_path / "report"
     lines = list(csv.DictReader(io.StringIO((out / "table4.csv").read_text())))
-    nv = next(r for r in lines if r["experiment"] == "no_corrector" and r["split"] == "novel_view"
-              and r["metric"] == "psnr" and r["region"] == "image")  # fmt: skip
+    nv = next(
+        r
+        for r in lines
+        if r["experiment"] == "no_corrector"
+        and r["split"] == "novel_view"
+        and r["metric"] == "psnr"
+        and r["region"] == "image"
+    )
     assert float(nv["delta"]) == pytest.approx(-1.0) and nv["verdict"] == "agrees" and nv["seeds"] == "0 1 2"
     assert (out / "table4.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert list((out / "tb").glob("events.out.tfevents.*"))
@@ -142,8 +170,11 @@ def test_report_refuses_what_it_cannot_compare(parts, tmp_path):
     empty.mkdir()
     with pytest.raises(ReportError, match="no results.json"):
         find_runs([empty])
-    for run in (parts[0] / "+experiment=paper_full,seed=0", parts[0] / "+experiment=paper_full,seed=1",
-                parts[1] / "+experiment=paper_full,seed=2"):  # fmt: skip
+    for run in (
+        parts[0] / "+experiment=paper_full,seed=0",
+        parts[0] / "+experiment=paper_full,seed=1",
+        parts[1] / "+experiment=paper_full,seed=2",
+    ):
         (run / "results.json").unlink()
     with pytest.raises(ReportError, match="paper_full"):
         build_table(find_runs(parts))
@@ -166,8 +197,13 @@ def test_report_command(parts, tmp_path):
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "Table 4" in proc.stdout and (tmp_path / "r" / "table4.md").is_file()
-    proc = subprocess.run([sys.executable, "-m", "framework.report", str(tmp_path / "nothing")], env=env,
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "framework.report", str(tmp_path / "nothing")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 2 and "no such directory" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -183,14 +219,32 @@ def test_paper_table_has_every_row_of_the_sweep():
 # A real sweep at toy size through the sweep config: 2 rows x 2 seeds, run as two parts (one seed each). Keys of groups
 # the experiment chooses (data, deformer) take `++`: a multirun first composes the config without the swept
 # experiment, where those groups are still train.yaml's defaults.
-TINY_SWEEP = ["body=procedural", "++data.body=procedural", "++data.resolution=40", "++data.views=4",
-              "++data.frames=6", "++data.supersample=1", "++data.workers=1", "++deformer.grid_resolution=10",
-              "gaussians.num=200", "trainer.max_steps=12", "stages.stage1_steps=4", "trainer.val_every=100",
-              "densifier.first_reset=3", "densifier.reset_every=4", "densifier.refine_stop=10",
-              "densifier.reset_restart=4", "densifier.refine_start=2",
-              "densifier.refine_every=4", "callbacks.checkpoint_every=100", "callbacks.image_every=0",
-              "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]", "threads=1",
-              "+experiment=paper_full,no_corrector"]  # fmt: skip
+TINY_SWEEP = [
+    "body=procedural",
+    "++data.body=procedural",
+    "++data.resolution=40",
+    "++data.views=4",
+    "++data.frames=6",
+    "++data.supersample=1",
+    "++data.workers=1",
+    "++deformer.grid_resolution=10",
+    "gaussians.num=200",
+    "trainer.max_steps=12",
+    "stages.stage1_steps=4",
+    "trainer.val_every=100",
+    "densifier.first_reset=3",
+    "densifier.reset_every=4",
+    "densifier.refine_stop=10",
+    "densifier.reset_restart=4",
+    "densifier.refine_start=2",
+    "densifier.refine_every=4",
+    "callbacks.checkpoint_every=100",
+    "callbacks.image_every=0",
+    "callbacks.progress_bar=false",
+    "eval.metrics=[psnr,ssim]",
+    "threads=1",
+    "+experiment=paper_full,no_corrector",
+]
 
 
 def test_tiny_real_sweep_in_two_parts_reports(tmp_path: Path):
@@ -198,8 +252,17 @@ def test_tiny_real_sweep_in_two_parts_reports(tmp_path: Path):
     parts = []
     for seed in (0, 1):
         part = tmp_path / f"part{seed}"
-        cmd = [sys.executable, "-m", "framework.train", "-m", "--config-name", "ablations", *TINY_SWEEP, f"seed={seed}",
-               f"hydra.sweep.dir={part}"]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "framework.train",
+            "-m",
+            "--config-name",
+            "ablations",
+            *TINY_SWEEP,
+            f"seed={seed}",
+            f"hydra.sweep.dir={part}",
+        ]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-3000:]
         parts.append(part)
@@ -215,6 +278,9 @@ def test_tiny_real_sweep_in_two_parts_reports(tmp_path: Path):
     markdown, _ = write_report(find_runs(parts), tmp_path / "report")
     rows = {r.experiment: r for r in build_table(find_runs(parts)).rows}
     assert set(rows) == {"paper_full", "no_corrector"} and rows["no_corrector"].seeds == (0, 1)
-    assert rows["no_corrector"].cells[("image", "novel_pose", "psnr")].verdict in ("agrees", "disagrees",
-                                                                                  "within noise")  # fmt: skip
+    assert rows["no_corrector"].cells[("image", "novel_pose", "psnr")].verdict in (
+        "agrees",
+        "disagrees",
+        "within noise",
+    )
     assert "w/o F_a (no_corrector)" in markdown

@@ -33,11 +33,23 @@ THRESHOLDS = {
 
 def _profile(**changes) -> SceneProfile:
     values = dict(
-        key="k", dataset="d", body="procedural", width=128, height=128, views=9, frames=48,
-        joints={"pelvis": 0.0, "spine": 12.0, "hand.L": 1.0, "head": 4.9}, moving_deg=5.0, silhouette_px=1000.0,
-        silhouette_fraction=0.06, silhouette_px_per_view={0: 1000.0}, view_dependence=0.005, pose_dependence=0.0005,
-        pose_noise=0.001, skin_offset_px=0.2,
-    )  # fmt: skip
+        key="k",
+        dataset="d",
+        body="procedural",
+        width=128,
+        height=128,
+        views=9,
+        frames=48,
+        joints={"pelvis": 0.0, "spine": 12.0, "hand.L": 1.0, "head": 4.9},
+        moving_deg=5.0,
+        silhouette_px=1000.0,
+        silhouette_fraction=0.06,
+        silhouette_px_per_view={0: 1000.0},
+        view_dependence=0.005,
+        pose_dependence=0.0005,
+        pose_noise=0.001,
+        skin_offset_px=0.2,
+    )
     values.update(changes)
     return SceneProfile(**values)
 
@@ -58,8 +70,13 @@ def test_choices_follow_the_profile_numbers():
         "gaussians.num": 6000,  # 6 per silhouette pixel
         "densifier.max_gaussians": 12000,
     }
-    demanding = _by_key(choose(_profile(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0,
-                                        silhouette_px=100.0), THRESHOLDS, "pelvis"))  # fmt: skip
+    demanding = _by_key(
+        choose(
+            _profile(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0, silhouette_px=100.0),
+            THRESHOLDS,
+            "pelvis",
+        )
+    )
     assert demanding["gaussians.sh_degree"] == 2 and demanding["corrector"] is None and demanding["deformer"] is None
     assert demanding["scene.fold_corrector"] is False  # 0.02 >= 0.015: F_a kept whole at compaction
     assert demanding["corrector.hidden"] == 48  # 0.02 < 0.03: a narrower F_a
@@ -83,9 +100,16 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     choices = choose(_profile(), dict(cfg.scene.thresholds), "pelvis")
     untouched = OmegaConf.to_container(cfg, resolve=False)
     # by hand: every key auto would set, in the forms people type them
-    typed = ["scene.frozen_joints=[]", "gaussians.sh_degree=3", "corrector=latent", "scene.fold_corrector=false",
-             "corrector.hidden=128", "deformer=lbs_residual",
-             "profile.num_gaussians=8000", "densifier.max_gaussians=15000"]  # fmt: skip
+    typed = [
+        "scene.frozen_joints=[]",
+        "gaussians.sh_degree=3",
+        "corrector=latent",
+        "scene.fold_corrector=false",
+        "corrector.hidden=128",
+        "deformer=lbs_residual",
+        "profile.num_gaussians=8000",
+        "densifier.max_gaussians=15000",
+    ]
     done = apply_choices(cfg, choices, override_keys(typed))
     assert all(c.overridden and not c.applied for c in done)
     assert OmegaConf.to_container(cfg, resolve=False) == untouched
@@ -98,8 +122,9 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     assert cfg.deformer.grid_resolution == 64 and "hidden" not in cfg.deformer  # the lbs option, residual keys gone
     # tuning a component's option is not choosing the component
     cfg = _paper_full_auto("deformer.grid_resolution=32")
-    apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"),
-                  override_keys(["deformer.grid_resolution=32"]))  # fmt: skip
+    apply_choices(
+        cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"), override_keys(["deformer.grid_resolution=32"])
+    )
     assert cfg.deformer.name == "lbs" and cfg.deformer.grid_resolution == 32
     # F_a's width follows conf/scene/auto.yaml's threshold; an F_a set off by hand gets no width key
     walking = _profile(pose_dependence=0.02)
@@ -113,10 +138,21 @@ def test_auto_composes_and_every_choice_can_be_overridden():
 
 
 TINY_AUTO = [
-    "+experiment=paper_full", "+scene=auto", "trainer.fast_dev_run=true", "body=procedural", "data.body=procedural",
-    "data.resolution=48", "data.views=6", "data.frames=8", "data.motion=arms", "data.supersample=1",
-    "deformer.grid_resolution=12", "callbacks.progress_bar=false", "threads=1", "scene.max_frames=3",
-]  # fmt: skip
+    "+experiment=paper_full",
+    "+scene=auto",
+    "trainer.fast_dev_run=true",
+    "body=procedural",
+    "data.body=procedural",
+    "data.resolution=48",
+    "data.views=6",
+    "data.frames=8",
+    "data.motion=arms",
+    "data.supersample=1",
+    "deformer.grid_resolution=12",
+    "callbacks.progress_bar=false",
+    "threads=1",
+    "scene.max_frames=3",
+]
 
 
 @pytest.fixture(scope="module")
@@ -124,8 +160,15 @@ def auto_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """One fast_dev_run of paper_full + auto on an arms-only capture, with two of the choices set by hand."""
     tmp = tmp_path_factory.mktemp("auto")
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp / "cache"), PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "framework.train", *TINY_AUTO, "gaussians.sh_degree=2", "gaussians.num=321",
-           f"paths.root={tmp / 'out'}"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.train",
+        *TINY_AUTO,
+        "gaussians.sh_degree=2",
+        "gaussians.num=321",
+        f"paths.root={tmp / 'out'}",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=tmp)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return next((tmp / "out" / "paper_full").glob("*")), proc
@@ -164,9 +207,19 @@ def test_prune_entry_point_writes_a_compact_model_that_loads(auto_run, tmp_path)
     run, _ = auto_run
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
     out = tmp_path / "compact.ckpt"
-    cmd = [sys.executable, "-m", "framework.prune", f"ckpt={run / 'checkpoints' / 'final.ckpt'}", f"out={out}",
-           "warmup=1", "repeats=2", f"json={tmp_path / 'report.json'}", "prune_tolerance=null",
-           "refit_steps=0", "timing_rasterizer=numba"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.prune",
+        f"ckpt={run / 'checkpoints' / 'final.ckpt'}",
+        f"out={out}",
+        "warmup=1",
+        "repeats=2",
+        f"json={tmp_path / 'report.json'}",
+        "prune_tolerance=null",
+        "refit_steps=0",
+        "timing_rasterizer=numba",
+    ]
     # the min_weight threshold alone (no faint-Gaussian pruning, no refit: the refit has its own test below)
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -189,8 +242,15 @@ def test_export_with_prune_writes_the_compact_model_and_exports_it(auto_run, tmp
     run, _ = auto_run
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(run.parents[2] / "cache"), PYTHONUNBUFFERED="1")
     ckpt = run / "checkpoints" / "final.ckpt"
-    cmd = [sys.executable, "-m", "framework.export", f"ckpt={ckpt}", "prune=true", f"out_dir={tmp_path / 'export'}",
-           "refit_steps=10"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.export",
+        f"ckpt={ckpt}",
+        "prune=true",
+        f"out_dir={tmp_path / 'export'}",
+        "refit_steps=10",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     compact = ckpt.with_name("final.pruned.ckpt")
@@ -213,13 +273,16 @@ def test_refit_after_pruning_keeps_the_weights_rebuildable(auto_run, tmp_path, m
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(run.parents[2] / "cache"))
     ckpt = run / "checkpoints" / "final.ckpt"
     # without a refit but at the tolerance the refit's "auto" means, so both keep the same Gaussians
-    plain = prune_checkpoint(ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu", refit_steps=0,
-                             prune_tolerance=0.03)  # fmt: skip
+    plain = prune_checkpoint(
+        ckpt, tmp_path / "plain.ckpt", measure=False, device="cpu", refit_steps=0, prune_tolerance=0.03
+    )
     refit = prune_checkpoint(ckpt, tmp_path / "refit.ckpt", measure=False, device="cpu", refit_steps=20)
     assert plain.refit is None and refit.refit["steps"] == 20 and refit.refit["stopped"] is None
     assert refit.prune_tolerance == 0.03 and resolve_prune_tolerance("auto", 0) == pytest.approx(0.7 / 255)
-    a, b = (torch.load(tmp_path / f"{n}.ckpt", map_location="cpu", weights_only=False)["state_dict"]
-            for n in ("plain", "refit"))  # fmt: skip
+    a, b = (
+        torch.load(tmp_path / f"{n}.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+        for n in ("plain", "refit")
+    )
     key = "avatar.gaussians.params.means"
     assert a[key].shape == b[key].shape and not torch.equal(a[key], b[key])  # the same Gaussians, moved
     assert refit.skin_weights_stored is False and "avatar.gaussians.params.skin_weights" not in b

@@ -39,8 +39,11 @@ def looks(tmp_path_factory, body):
     """Profiles of the same arms-only capture in matte and glossy cloth, and of a near-static capture (128 px)."""
     size = {"resolution": 128, "views": 8, "frames": 4}
     out = {}
-    for name, kwargs in {"matte": {"motion": "arms"}, "glossy": {"motion": "arms", "look": "glossy"},
-                         "idle": {"motion": "idle"}}.items():  # fmt: skip
+    for name, kwargs in {
+        "matte": {"motion": "arms"},
+        "glossy": {"motion": "arms", "look": "glossy"},
+        "idle": {"motion": "idle"},
+    }.items():
         out[name] = profile_dataset(_studio(tmp_path_factory, **size, **kwargs), body, progress=False)
     return out
 

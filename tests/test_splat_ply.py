@@ -12,8 +12,11 @@ from framework.formats.splat_ply import SplatFileError, read_splat_ply, write_sp
 from framework.types import Gaussians
 
 # graphdeco-inria GaussianModel.construct_list_of_attributes for max_sh_degree = 3, written out by hand
-EXPECTED = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])  # fmt: skip
+EXPECTED = (
+    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    + [f"f_rest_{i}" for i in range(45)]
+    + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+)
 
 
 def random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
@@ -70,8 +73,9 @@ def test_reads_the_unpadded_files_3dgs_writes_for_lower_degrees(tmp_path):
     rest = g.sh[:, 1:].transpose(1, 2).reshape(5, 9)  # [N, 3 channels x 3 coefficients]
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    cols = torch.cat([g.means, torch.zeros(5, 3), g.sh[:, 0], rest, g.opacity_logits[:, None], g.log_scales,
-                      g.quats], dim=1).numpy()  # fmt: skip
+    cols = torch.cat(
+        [g.means, torch.zeros(5, 3), g.sh[:, 0], rest, g.opacity_logits[:, None], g.log_scales, g.quats], dim=1
+    ).numpy()
     data = np.empty(5, dtype=[(n, "f4") for n in names])
     for i, n in enumerate(names):
         data[n] = cols[:, i]
@@ -111,10 +115,19 @@ def test_posed_avatar_renders_identically_after_a_round_trip(tiny, tmp_path, mon
     with torch.no_grad():
         ours = module.render_batch(frame_batch(cams, pose, root, frames[2])).render.rgb
         raster = RASTERIZERS.build("torch_ref")
-        theirs, exported = (raster.render(
-            g.means, g.quats, torch.exp(g.log_scales), torch.sigmoid(g.opacity_logits), g.sh, cams,
-            sh_degree=degree, background=module.avatar.background,
-        ).rgb for g in (back, posed))  # fmt: skip
+        theirs, exported = (
+            raster.render(
+                g.means,
+                g.quats,
+                torch.exp(g.log_scales),
+                torch.sigmoid(g.opacity_logits),
+                g.sh,
+                cams,
+                sh_degree=degree,
+                background=module.avatar.background,
+            ).rgb
+            for g in (back, posed)
+        )
     assert ours.abs().sum() > 0
     assert torch.equal(theirs, exported)
     torch.testing.assert_close(theirs, ours, atol=1e-5, rtol=0)

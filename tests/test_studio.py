@@ -57,8 +57,13 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
     meta = json.loads((seq / "studio.json").read_text())
     assert meta["novel_pose_frames"] and meta["train_frames"]
     assert set(meta["train_frames"]).isdisjoint(meta["novel_pose_frames"])
-    ds = ZjuMocapDataset(root=str(seq), split="train", protocol=None, train_frames=meta["train_frames"],
-                         novel_pose_frames=meta["novel_pose_frames"])  # fmt: skip
+    ds = ZjuMocapDataset(
+        root=str(seq),
+        split="train",
+        protocol=None,
+        train_frames=meta["train_frames"],
+        novel_pose_frames=meta["novel_pose_frames"],
+    )
     assert ds.body_name == "procedural" and ds.cameras.num == 4
     assert ds[0].image.shape == (1, 64, 64, 3) and ds[0].pose.shape == (1, 17, 3)
     inside = strict = total = 0
@@ -99,8 +104,13 @@ def test_loaded_pose_and_root_reproduce_the_stored_vertices(seq):
     plugins.load_plugins()
     body = BODIES.build("procedural")
     meta = json.loads((seq / "studio.json").read_text())
-    ds = ZjuMocapDataset(root=str(seq), split="novel_pose", protocol=None, train_frames=meta["train_frames"],
-                         novel_pose_frames=meta["novel_pose_frames"])  # fmt: skip
+    ds = ZjuMocapDataset(
+        root=str(seq),
+        split="novel_pose",
+        protocol=None,
+        train_frames=meta["train_frames"],
+        novel_pose_frames=meta["novel_pose_frames"],
+    )
     item = ds[0]
     f = int(item.frame[0])
     local = body.posed_vertices(item.pose.double())[0]  # [V, 3]
@@ -152,8 +162,12 @@ def test_pose_dependent_shading_same_canonical_point():
 
         outs.append(raycast.render(verts, faces, cam, color_fn=color, shading=studio.LIGHT))
     a, b = outs
-    torso = np.isin(a.face_ids, np.flatnonzero(np.isin(body.skin_weights.argmax(1).numpy()[faces[:, 0]],
-                                                       [rig.index["chest"], rig.index["spine"]])))  # fmt: skip
+    torso = np.isin(
+        a.face_ids,
+        np.flatnonzero(
+            np.isin(body.skin_weights.argmax(1).numpy()[faces[:, 0]], [rig.index["chest"], rig.index["spine"]])
+        ),
+    )
     same = torso & (a.face_ids == b.face_ids)
     assert same.sum() > 100
     diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max(-1)

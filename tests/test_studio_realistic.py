@@ -15,9 +15,19 @@ from scipy.spatial.transform import Rotation
 from framework.data.studio import StudioSettings, generate
 from framework.data.zju.layout import load_pickled_dict, read_image, read_mask_file
 
-REALISTIC = StudioSettings(resolution=64, views=4, frames=12, seed=0, body="procedural", supersample=1,
-                           pose_noise_deg=3.0, root_noise_m=0.01, mask_error_px=3.0, garment="skirt",
-                           subject_height_fraction=0.85)  # fmt: skip
+REALISTIC = StudioSettings(
+    resolution=64,
+    views=4,
+    frames=12,
+    seed=0,
+    body="procedural",
+    supersample=1,
+    pose_noise_deg=3.0,
+    root_noise_m=0.01,
+    mask_error_px=3.0,
+    garment="skirt",
+    subject_height_fraction=0.85,
+)
 
 
 @pytest.fixture(scope="module")

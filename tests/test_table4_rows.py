@@ -38,16 +38,23 @@ def changed_keys(experiment: str, *overrides: str) -> dict[str, tuple[object, ob
     """{dotted key: (paper_full's value, the experiment's)} for every resolved key that differs (absent keys too)."""
     full = flat(composed("+experiment=paper_full", *overrides))
     cfg = flat(composed(f"+experiment={experiment}", *overrides))
-    return {k: (full.get(k, "<absent>"), cfg.get(k, "<absent>")) for k in full.keys() | cfg.keys()
-            if full.get(k, "<absent>") != cfg.get(k, "<absent>") and k != "task_name"}  # fmt: skip
+    return {
+        k: (full.get(k, "<absent>"), cfg.get(k, "<absent>"))
+        for k in full.keys() | cfg.keys()
+        if full.get(k, "<absent>") != cfg.get(k, "<absent>") and k != "task_name"
+    }
 
 
 def changed_groups(row: str) -> set[str]:
     return {k.split(".")[0] for k in changed_keys(row)}
 
 
-CORRECTOR_OFF = {"corrector.name": ("latent", "none"), "corrector.hidden": (128, "<absent>"),
-                 "corrector.layers": (4, "<absent>"), "corrector.all_sh": (False, "<absent>")}  # fmt: skip
+CORRECTOR_OFF = {
+    "corrector.name": ("latent", "none"),
+    "corrector.hidden": (128, "<absent>"),
+    "corrector.layers": (4, "<absent>"),
+    "corrector.all_sh": (False, "<absent>"),
+}
 #: Table 4 row -> exactly the resolved keys it changes from paper_full, with (paper_full's value, the row's)
 TABLE4_ROWS: dict[str, dict[str, tuple[object, object]]] = {
     "simple_3dgs_lbs": {**CORRECTOR_OFF, "pose_refine.enabled": (True, False)},
@@ -55,12 +62,12 @@ TABLE4_ROWS: dict[str, dict[str, tuple[object, object]]] = {
         "corrector.name": ("latent", "posenc"),
         "corrector.num_freqs": ("<absent>", 3),
         "corrector.extent": ("<absent>", 1.0),
-    },  # fmt: skip
+    },
     "foreground_only_loss": {
         "loss.terms.l1.foreground_only": ("<absent>", True),
         "loss.terms.dssim.foreground_only": ("<absent>", True),
         "loss.terms.alpha.weight": (10.0, 0.0),
-    },  # fmt: skip
+    },
     "all_sh_correction": {"corrector.all_sh": (False, True), "corrector.sh_degree": ("<absent>", 3)},
     "no_first_stage": {"stages.stage1_steps": (1000, 0)},
     "no_joint_optimisation": {"pose_refine.enabled": (True, False)},
@@ -132,8 +139,10 @@ def test_splatrig_full_is_all_of_our_forms_together():
 
 
 def test_lpips_variant_is_the_papers_w_lp_not_a_table4_row():
-    assert changed_keys("paper_full_lpips") == {"loss.terms.lpips.weight": (0.0, 0.2),
-                                                "loss.terms.lpips.net": ("<absent>", "alex")}  # fmt: skip
+    assert changed_keys("paper_full_lpips") == {
+        "loss.terms.lpips.weight": (0.0, 0.2),
+        "loss.terms.lpips.net": ("<absent>", "alex"),
+    }
     header = _header("paper_full_lpips")
     assert "w/ L_p" in header and "Tables 2 and 3" in header and "Not a Table 4 row" in header
     assert "paper_full_lpips" not in _sweep_list("ablations")
@@ -149,8 +158,13 @@ def _render_and_batch(seed: int = 0, h: int = 24, w: int = 20) -> tuple[RenderOu
     image = torch.rand(1, h, w, 3, generator=g)
     cams = Cameras(torch.eye(3)[None], torch.eye(4)[None], w, h)
     batch = FrameBatch(image=image, mask=mask, boundary=boundary, cameras=cams, frame=torch.zeros(1, dtype=torch.long))
-    render = RenderOutput(rgb=torch.rand(1, h, w, 3, generator=g), alpha=torch.rand(1, h, w, 1, generator=g),
-                          depth=None, means2d=torch.zeros(1, 0, 2), radii=torch.zeros(1, 0))  # fmt: skip
+    render = RenderOutput(
+        rgb=torch.rand(1, h, w, 3, generator=g),
+        alpha=torch.rand(1, h, w, 1, generator=g),
+        depth=None,
+        means2d=torch.zeros(1, 0, 2),
+        radii=torch.zeros(1, 0),
+    )
     return render, batch
 
 
@@ -162,12 +176,22 @@ def test_foreground_only_row_sees_nothing_outside_the_human_mask():
     assert "alpha" not in loss.terms
     render, batch = _render_and_batch()
     inside = batch.mask[..., None].bool()
-    agrees_inside = RenderOutput(rgb=torch.where(inside, batch.image, render.rgb), alpha=render.alpha, depth=None,
-                                 means2d=render.means2d, radii=render.radii)  # fmt: skip
+    agrees_inside = RenderOutput(
+        rgb=torch.where(inside, batch.image, render.rgb),
+        alpha=render.alpha,
+        depth=None,
+        means2d=render.means2d,
+        radii=render.radii,
+    )
     total, values = loss(agrees_inside, batch, {})
     assert total.item() == pytest.approx(0.0, abs=1e-6), values
-    differs_inside = RenderOutput(rgb=torch.where(inside, 1 - batch.image, render.rgb), alpha=render.alpha,
-                                  depth=None, means2d=render.means2d, radii=render.radii)  # fmt: skip
+    differs_inside = RenderOutput(
+        rgb=torch.where(inside, 1 - batch.image, render.rgb),
+        alpha=render.alpha,
+        depth=None,
+        means2d=render.means2d,
+        radii=render.radii,
+    )
     assert loss(differs_inside, batch, {})[0].item() > 1e-3
     assert changed_groups("foreground_only_loss") == {"loss"}
 
@@ -180,8 +204,13 @@ def test_boundary_row_removes_the_band_from_l1_and_alpha():
     mask = batch.mask[..., None]
 
     def with_band(rgb, alpha):
-        return RenderOutput(rgb=torch.where(band, rgb, render.rgb), alpha=torch.where(band, alpha, render.alpha),
-                            depth=None, means2d=render.means2d, radii=render.radii)  # fmt: skip
+        return RenderOutput(
+            rgb=torch.where(band, rgb, render.rgb),
+            alpha=torch.where(band, alpha, render.alpha),
+            depth=None,
+            means2d=render.means2d,
+            radii=render.radii,
+        )
 
     exact, changed = with_band(batch.image, mask), with_band(1 - batch.image, 1 - mask)  # right / wrong in the band
     render = exact
@@ -232,7 +261,7 @@ PROFILE_STEPS = {
             "sh_every": 1000,
             "val_every": 1000,
         },
-    ),  # fmt: skip
+    ),
     "cpu": (
         4000,
         {
@@ -245,7 +274,7 @@ PROFILE_STEPS = {
             "sh_every": 1000,
             "val_every": 1000,
         },
-    ),  # fmt: skip
+    ),
 }
 PROFILE_STEPS["ablation"] = PROFILE_STEPS["cpu"]  # Table 4 runs at the CPU profile
 
@@ -317,9 +346,12 @@ def _reset_steps(experiment: str, *overrides: str) -> tuple[list[int], dict]:
     cfg = composed(f"+experiment={experiment}", *overrides)
     densifier = build_component("densifier", cfg["densifier"])
     part = SimpleNamespace(enabled=False)
-    module = SimpleNamespace(densifier=densifier, densifier_state=densifier.initialize_state(),
-                             avatar=SimpleNamespace(corrector=part, deformer=SimpleNamespace(enabled=False)),
-                             log=lambda *a, **k: None)  # fmt: skip
+    module = SimpleNamespace(
+        densifier=densifier,
+        densifier_state=densifier.initialize_state(),
+        avatar=SimpleNamespace(corrector=part, deformer=SimpleNamespace(enabled=False)),
+        log=lambda *a, **k: None,
+    )
     module.begin_stage2 = lambda step: SplatModule.begin_stage2(module, step)
     switch = StageSwitch(int(cfg["stages"]["stage1_steps"]))
     trainer = SimpleNamespace(global_step=0)
@@ -366,10 +398,19 @@ def test_no_first_stage_keeps_every_other_milestone(profile: str):
 def _tiny_module(experiment: str):
     from framework.lightning.module import SplatModule
 
-    cfg = composed(f"+experiment={experiment}", "body=procedural", "deformer.grid_resolution=8", "gaussians.num=200",
-                   "rasterizer=torch_ref")  # fmt: skip
-    data_info = {"bounds": [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], "num_frames_total": 2, "body_name": "procedural",
-                 "num_joints": 17}  # fmt: skip
+    cfg = composed(
+        f"+experiment={experiment}",
+        "body=procedural",
+        "deformer.grid_resolution=8",
+        "gaussians.num=200",
+        "rasterizer=torch_ref",
+    )
+    data_info = {
+        "bounds": [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]],
+        "num_frames_total": 2,
+        "body_name": "procedural",
+        "num_joints": 17,
+    }
     return SplatModule(cfg, data_info)
 
 
@@ -377,9 +418,15 @@ def _batch(size: int = 16) -> FrameBatch:
     w2c = torch.tensor([[1.0, 0, 0, 0], [0, 0, -1, 0.0], [0, 1, 0, 3.0], [0, 0, 0, 1]])
     K = torch.tensor([[20.0, 0, size / 2], [0, 20.0, size / 2], [0, 0, 1]])
     z = torch.zeros(1, size, size)
-    return FrameBatch(image=torch.zeros(1, size, size, 3), mask=z, boundary=z + 1,
-                      cameras=Cameras(K[None], w2c[None], size, size), frame=torch.zeros(1, dtype=torch.long),
-                      pose=torch.zeros(1, 17, 3), root=torch.eye(4)[None])  # fmt: skip
+    return FrameBatch(
+        image=torch.zeros(1, size, size, 3),
+        mask=z,
+        boundary=z + 1,
+        cameras=Cameras(K[None], w2c[None], size, size),
+        frame=torch.zeros(1, dtype=torch.long),
+        pose=torch.zeros(1, 17, 3),
+        root=torch.eye(4)[None],
+    )
 
 
 def test_weight_std_is_not_computed_when_its_loss_weight_is_zero(tmp_path, monkeypatch):

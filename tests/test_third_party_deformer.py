@@ -130,8 +130,17 @@ def test_a_third_party_deformer_gets_stage_switching_baking_and_compaction(
     # compaction: the offset leaves the checkpoint, which loads as plain `lbs` with the baked weights and renders the
     # training images as the trained model does (nothing pruned: min_weight 0, every SH band kept)
     out = tmp_path / "compact.ckpt"
-    report = prune_checkpoint(ckpts / "final.ckpt", out, min_weight=0.0, sh_tolerance=0.0, measure=False,
-                              device="cpu", fold_tolerance=None, prune_tolerance=None, refit_steps=0)  # fmt: skip
+    report = prune_checkpoint(
+        ckpts / "final.ckpt",
+        out,
+        min_weight=0.0,
+        sh_tolerance=0.0,
+        measure=False,
+        device="cpu",
+        fold_tolerance=None,
+        prune_tolerance=None,
+        refit_steps=0,
+    )
     compact = _load(out)
     assert report.weights_baked and compact["hyper_parameters"]["cfg"]["deformer"]["name"] == "lbs"
     assert key not in compact["state_dict"]

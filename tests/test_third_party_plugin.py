@@ -25,8 +25,9 @@ DIST = "splatrig-example-plugin"
 
 
 def run(args: list[str], env: dict[str, str], cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(args, env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout,
-                          stdin=subprocess.DEVNULL)  # fmt: skip
+    return subprocess.run(
+        args, env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL
+    )
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +39,24 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str,
     site = root / "site"
     env = dict(os.environ)
     env.pop("SPLATRIG_PLUGINS", None)  # the entry points alone must find it
-    proc = run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index",
-                "--disable-pip-version-check", "--quiet", "--target", str(site), str(src)], env, root)  # fmt: skip
+    proc = run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--disable-pip-version-check",
+            "--quiet",
+            "--target",
+            str(site),
+            str(src),
+        ],
+        env,
+        root,
+    )
     assert proc.returncode == 0, f"pip install of the example plugin failed:\n{proc.stdout}\n{proc.stderr}"
     env["PYTHONPATH"] = os.pathsep.join([str(site), *filter(None, [env.get("PYTHONPATH")])])
     return root, env
@@ -49,8 +66,11 @@ def test_installed_plugin_is_listed_with_its_distribution(installed: tuple[Path,
     root, env = installed
     proc = run([sys.executable, "-m", "framework.plugins"], env, root)
     assert proc.returncode == 0, proc.stderr
-    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in proc.stdout.splitlines()
-            if line.startswith("|")]  # fmt: skip
+    rows = [
+        [c.strip() for c in line.strip().strip("|").split("|")]
+        for line in proc.stdout.splitlines()
+        if line.startswith("|")
+    ]
     assert ["densifier", "example_prune_only", DIST, "available"] in rows, proc.stdout
     assert "Plugins that failed to import" not in proc.stdout
     assert "Config search paths added by plugins: pkg://splatrig_example_plugin.conf" in proc.stdout
@@ -73,8 +93,13 @@ def test_training_with_the_plugin_selected_on_the_command_line(installed: tuple[
     proc = run([sys.executable, "-m", "framework.train", *overrides], env, root, timeout=600)
     assert proc.returncode == 0, f"training failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-8000:]}"
     cfg = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
-    assert cfg["densifier"] == {"name": "example_prune_only", "every": 2, "start": 2, "stop": 1_000_000_000,
-                                "min_opacity": 0.1}  # fmt: skip
+    assert cfg["densifier"] == {
+        "name": "example_prune_only",
+        "every": 2,
+        "start": 2,
+        "stop": 1_000_000_000,
+        "min_opacity": 0.1,
+    }
     ckpt = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert ckpt["global_step"] == steps
     means = [v for k, v in ckpt["state_dict"].items() if k.endswith("means")]

@@ -86,15 +86,41 @@ def _write_point(root: Path, name: str, seed: int, shift: float = 0.0) -> None:
     psnr, fps, seconds, rss, size = POINTS[name]
     run = root / f"{name}_seed{seed}"
     summary = {"novel_pose/psnr": psnr + shift, "novel_view/psnr": psnr + 1}
-    write_run_record(run, experiment=f"tradeoff_{name}", config_name="tradeoff",
-                     overrides=[f"+tradeoff={name}", f"seed={seed}", "data=synthetic_studio_realistic",
-                                "profile=ablation", "threads=1"], seed=seed, profile="ablation",
-                     data="synthetic_studio", steps=1000, max_steps=1000, train_seconds=seconds, run_seconds=seconds,
-                     num_gaussians=size // 1000, peak_rss_mib=rss, cuda_peak_mib=None, seconds_per_step=seconds / 1000,
-                     render_fps={"novel_pose": fps, "novel_view": 3 * fps, "split": "novel_pose", "frames": 20,
-                                 "warmup": 3, "device": "cpu"},
-                     model_bytes=size, checkpoint_bytes=3 * size, checkpoint="final.ckpt",
-                     metrics=metrics_from_summary(summary))  # fmt: skip
+    write_run_record(
+        run,
+        experiment=f"tradeoff_{name}",
+        config_name="tradeoff",
+        overrides=[
+            f"+tradeoff={name}",
+            f"seed={seed}",
+            "data=synthetic_studio_realistic",
+            "profile=ablation",
+            "threads=1",
+        ],
+        seed=seed,
+        profile="ablation",
+        data="synthetic_studio",
+        steps=1000,
+        max_steps=1000,
+        train_seconds=seconds,
+        run_seconds=seconds,
+        num_gaussians=size // 1000,
+        peak_rss_mib=rss,
+        cuda_peak_mib=None,
+        seconds_per_step=seconds / 1000,
+        render_fps={
+            "novel_pose": fps,
+            "novel_view": 3 * fps,
+            "split": "novel_pose",
+            "frames": 20,
+            "warmup": 3,
+            "device": "cpu",
+        },
+        model_bytes=size,
+        checkpoint_bytes=3 * size,
+        checkpoint="final.ckpt",
+        metrics=metrics_from_summary(summary),
+    )
 
 
 @pytest.fixture()
@@ -112,8 +138,14 @@ def test_points_are_means_over_seeds_and_the_front_comes_first(sweep: Path) -> N
     assert by["sh0"].psnr == pytest.approx(29.5) and by["sh0"].seeds == (0, 1)
     assert by["sh0"].train_min == pytest.approx(5.0) and by["sh0"].model_mb == pytest.approx(2.0)
     # sh0 dominates gaussians_half on every objective, fdw_off dominates the baseline (equal but training time)
-    assert [p.label for p in points] == ["corrector_wide", "fdw_off", "sh0", "preset_realtime", "baseline",
-                                         "gaussians_half"]  # fmt: skip
+    assert [p.label for p in points] == [
+        "corrector_wide",
+        "fdw_off",
+        "sh0",
+        "preset_realtime",
+        "baseline",
+        "gaussians_half",
+    ]
     assert [p.on_front for p in points] == [True, True, True, True, False, False]
     # the plane fronts: (PSNR, fps) has baseline and fdw_off tied, so both on it; (PSNR, time) has fdw_off only
     assert by["fdw_off"].front["fps"] and by["baseline"].front["fps"] and not by["gaussians_half"].front["fps"]
@@ -144,11 +176,29 @@ def test_speed_per_db_ranks_the_knobs(sweep: Path) -> None:
 
 def test_report_end_to_end(sweep: Path, capsys) -> None:
     out = sweep / "report"
-    code = report_main([str(sweep / "part1"), str(sweep / "part2"), "--kind", "tradeoff", "--out", str(out),
-                        "--budget", "fps>=20", "--budget", "model_mb<=0.5"])  # fmt: skip
+    code = report_main(
+        [
+            str(sweep / "part1"),
+            str(sweep / "part2"),
+            "--kind",
+            "tradeoff",
+            "--out",
+            str(out),
+            "--budget",
+            "fps>=20",
+            "--budget",
+            "model_mb<=0.5",
+        ]
+    )
     assert code == 0
-    for name in ("tradeoff.md", "tradeoff.csv", "tradeoff_fps.png", "tradeoff_train_time.png", "tradeoff_memory.png",
-                 "tradeoff_model_size.png"):  # fmt: skip
+    for name in (
+        "tradeoff.md",
+        "tradeoff.csv",
+        "tradeoff_fps.png",
+        "tradeoff_train_time.png",
+        "tradeoff_memory.png",
+        "tradeoff_model_size.png",
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     assert any((out / "tb").rglob("events.out.tfevents.*"))
     markdown = (out / "tradeoff.md").read_text()
@@ -168,9 +218,18 @@ def test_budget_flag_belongs_to_the_tradeoff_report(sweep: Path) -> None:
 
 # ------------------------------------------------------------------------------------------------ the sweep
 #: every milestone of the schedule (each a fraction of the run's length, conf/profile/*.yaml), and the length
-SCHEDULE = {"trainer.max_steps", "trainer.val_every", "stages.stage1_steps", "gaussians.sh_increase_every",
-            "densifier.refine_start", "densifier.refine_stop", "densifier.refine_every", "densifier.first_reset",
-            "densifier.reset_every", "densifier.reset_restart"}  # fmt: skip
+SCHEDULE = {
+    "trainer.max_steps",
+    "trainer.val_every",
+    "stages.stage1_steps",
+    "gaussians.sh_increase_every",
+    "densifier.refine_start",
+    "densifier.refine_stop",
+    "densifier.refine_every",
+    "densifier.first_reset",
+    "densifier.reset_every",
+    "densifier.reset_restart",
+}
 BUDGET = {"gaussians.num", "densifier.max_gaussians"}
 #: point -> the config keys (or "group." prefixes) it may change relative to the baseline, and must change
 KNOBS = {
@@ -197,8 +256,9 @@ KNOBS = {
 @functools.cache
 def _compose(point: str, profile: str):
     with initialize_config_module("framework.conf", version_base="1.3"):
-        return compose("tradeoff", overrides=[f"+tradeoff={point}", f"profile={profile}",
-                                              "data=synthetic_studio_realistic"])  # fmt: skip
+        return compose(
+            "tradeoff", overrides=[f"+tradeoff={point}", f"profile={profile}", "data=synthetic_studio_realistic"]
+        )
 
 
 def test_sweep_lists_every_cpu_point() -> None:

@@ -15,8 +15,12 @@ def test_gsplat_checkpoint_renders_on_the_cpu_with_numba(tiny_avatar, tmp_path_f
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(cache))
     checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
     assert checkpoint["hyper_parameters"]["cfg"]["rasterizer"]["name"] == "numba"
-    checkpoint["hyper_parameters"]["cfg"]["rasterizer"] = {"name": "gsplat", "packed": False, "absgrad": False,
-                                                         "tile_size": 16}  # fmt: skip
+    checkpoint["hyper_parameters"]["cfg"]["rasterizer"] = {
+        "name": "gsplat",
+        "packed": False,
+        "absgrad": False,
+        "tile_size": 16,
+    }
     gsplat_ckpt = tmp_path_factory.mktemp("gsplat") / "gsplat.ckpt"
     torch.save(checkpoint, gsplat_ckpt)
 

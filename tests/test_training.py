@@ -196,10 +196,25 @@ def test_paper_full_fast_dev_run_on_cpu(tmp_path: Path):
     """The paper's model end to end (studio generation, body, corrector, residual deformer, losses, densifier) for one
     step, on the procedural body so the test needs no Anny cache."""
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp_path / "cache"), PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "framework.train", "+experiment=paper_full", "trainer.fast_dev_run=true",
-           "body=procedural", "data.body=procedural", "data.resolution=32", "data.views=4", "data.frames=4",
-           "data.supersample=1", "deformer.grid_resolution=12", "gaussians.num=300", "stages.stage1_steps=0",
-           "callbacks.progress_bar=false", f"paths.root={tmp_path / 'out'}", "threads=1"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.train",
+        "+experiment=paper_full",
+        "trainer.fast_dev_run=true",
+        "body=procedural",
+        "data.body=procedural",
+        "data.resolution=32",
+        "data.views=4",
+        "data.frames=4",
+        "data.supersample=1",
+        "deformer.grid_resolution=12",
+        "gaussians.num=300",
+        "stages.stage1_steps=0",
+        "callbacks.progress_bar=false",
+        f"paths.root={tmp_path / 'out'}",
+        "threads=1",
+    ]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "profile=cpu" in proc.stderr
@@ -214,8 +229,13 @@ def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: 
     run = _run_dirs(tmp_path)[-1]
     env = dict(os.environ, SPLATRIG_CACHE_DIR=str(tmp_path / "cache"))
     trained = {f.name: f.stat().st_mtime_ns for f in (run / "eval").iterdir()}
-    cmd = [sys.executable, "-m", "framework.evaluate", f"ckpt={run / 'checkpoints' / 'last.ckpt'}",
-           "metrics=[psnr,ssim]"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "framework.evaluate",
+        f"ckpt={run / 'checkpoints' / 'last.ckpt'}",
+        "metrics=[psnr,ssim]",
+    ]
     ev = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert ev.returncode == 0, ev.stderr[-3000:]
     out = run / "eval_last"  # the default folder of a checkpoint other than final.ckpt: training's own eval stays
@@ -226,14 +246,33 @@ def test_standalone_evaluation_reproduces_the_end_of_training_metrics(tmp_path: 
 
 # paper_full at toy size: procedural body, 40 px, 4 views, 6 frames (one held-out motion frame), 30 steps with stage 2
 # from step 10 and the opacity-reset schedule compressed to fit (resets at 5 in stage 1 and 20 = 10 + 10 in stage 2)
-PAPER_TINY = ["+experiment=paper_full", "body=procedural", "data.body=procedural", "data.resolution=40",
-              "data.views=4", "data.frames=6", "data.supersample=1", "data.workers=1", "deformer.grid_resolution=12",
-              "gaussians.num=300", "trainer.max_steps=30", "stages.stage1_steps=10", "trainer.val_every=15",
-              "densifier.first_reset=5", "densifier.reset_every=10", "densifier.refine_stop=25",
-              "densifier.reset_restart=10",
-              "densifier.refine_start=2", "densifier.refine_every=5", "callbacks.checkpoint_every=10",
-              "callbacks.image_every=0", "callbacks.progress_bar=false", "eval.metrics=[psnr,ssim]",
-              "eval.fps_frames=4", "threads=1"]  # fmt: skip
+PAPER_TINY = [
+    "+experiment=paper_full",
+    "body=procedural",
+    "data.body=procedural",
+    "data.resolution=40",
+    "data.views=4",
+    "data.frames=6",
+    "data.supersample=1",
+    "data.workers=1",
+    "deformer.grid_resolution=12",
+    "gaussians.num=300",
+    "trainer.max_steps=30",
+    "stages.stage1_steps=10",
+    "trainer.val_every=15",
+    "densifier.first_reset=5",
+    "densifier.reset_every=10",
+    "densifier.refine_stop=25",
+    "densifier.reset_restart=10",
+    "densifier.refine_start=2",
+    "densifier.refine_every=5",
+    "callbacks.checkpoint_every=10",
+    "callbacks.image_every=0",
+    "callbacks.progress_bar=false",
+    "eval.metrics=[psnr,ssim]",
+    "eval.fps_frames=4",
+    "threads=1",
+]
 
 
 def test_paper_full_both_stages_bakes_weights_and_evaluates_novel_poses(tmp_path: Path, monkeypatch):
@@ -318,7 +357,12 @@ def test_gpu_training_resumes_rolls_back_and_evaluates_on_the_device(tmp_path: P
     proc = _train(first, "trainer.max_steps=45", f"ckpt={run / 'checkpoints' / 'last.ckpt'}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rolled = tmp_path / "rolled"
-    proc = _train(rolled, "trainer.max_steps=40", "divergence.action=rollback",
-                  "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}", faults={})  # fmt: skip
+    proc = _train(
+        rolled,
+        "trainer.max_steps=40",
+        "divergence.action=rollback",
+        "+loss.terms.fault={name: fault, weight: 1.0, at_step: 25, kind: nan_grad}",
+        faults={},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert any("rolled back" in line for line in proc.stderr.splitlines()), proc.stderr[-3000:]

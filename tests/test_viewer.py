@@ -99,8 +99,11 @@ def canvas_pixels(png: bytes, panel_left: int) -> np.ndarray:
     return iio.imread(io.BytesIO(png))[:, :panel_left, :3].astype(int)
 
 
-@pytest.mark.skipif(find_chromium() is None, reason="Chromium is not installed (Debian: apt-get install chromium); "
-                                                     "the viewer's browser test needs a real browser")  # fmt: skip
+@pytest.mark.skipif(
+    find_chromium() is None,
+    reason="Chromium is not installed (Debian: apt-get install chromium); "
+    "the viewer's browser test needs a real browser",
+)
 def test_viewer_page_in_a_real_browser_poses_the_avatar(tiny, tmp_path):
     """Start `python -m framework.view`, open it in headless Chromium, drag a joint slider with the mouse and check
     that the server renders and sends a different frame (the canvas pixels change)."""

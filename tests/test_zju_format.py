@@ -33,9 +33,11 @@ def ring_cameras(C: int, radius: float = 3.0, height: float = 0.3, size: int = 6
         y = np.cross(z, x)
         R[c] = np.stack([x, y, z])
         T[c] = -R[c] @ eye
-        K[c] = [[f * (1 + 0.05 * rng.random()), 0, size / 2 + rng.uniform(-3, 3)],
-                [0, f * (1 + 0.05 * rng.random()), size / 2 + rng.uniform(-3, 3)],
-                [0, 0, 1]]  # fmt: skip
+        K[c] = [
+            [f * (1 + 0.05 * rng.random()), 0, size / 2 + rng.uniform(-3, 3)],
+            [0, f * (1 + 0.05 * rng.random()), size / 2 + rng.uniform(-3, 3)],
+            [0, 0, 1],
+        ]
     return K, R, T
 
 
@@ -195,10 +197,15 @@ def write_core313_by_hand(root: Path, C: int = 21, F: int = 64, size: int = 8, s
     (root / "vertices").mkdir()
     poses = rng.normal(0, 0.2, (F, 72))
     for f in range(F):
-        np.save(root / "params" / f"{f + 1}.npy", {
-            "poses": poses[f][None], "Rh": rng.normal(0, 0.1, (1, 3)), "Th": rng.normal(0, 0.1, (1, 3)),
-            "shapes": np.zeros((1, 10)),
-        })  # fmt: skip
+        np.save(
+            root / "params" / f"{f + 1}.npy",
+            {
+                "poses": poses[f][None],
+                "Rh": rng.normal(0, 0.1, (1, 3)),
+                "Th": rng.normal(0, 0.1, (1, 3)),
+                "shapes": np.zeros((1, 10)),
+            },
+        )
         np.save(root / "vertices" / f"{f + 1}.npy", rng.normal(0, 0.3, (50, 3)).astype(np.float32))
     return {"K": K, "poses": poses}
 
@@ -229,8 +236,10 @@ def test_mask_search_order_and_images_to_mask(tmp_path: Path) -> None:
             mp = tmp_path / rel.replace("images", "mask").replace(".jpg", ".png")
             mp.parent.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(mp), np.full((8, 8), 255, np.uint8))
-    np.save(tmp_path / "annots.npy", {"cams": {"K": list(K), "D": [np.zeros((5, 1))] * 2, "R": list(R),
-                                               "T": list(T[..., None] * 1000)}, "ims": ims})  # fmt: skip
+    np.save(
+        tmp_path / "annots.npy",
+        {"cams": {"K": list(K), "D": [np.zeros((5, 1))] * 2, "R": list(R), "T": list(T[..., None] * 1000)}, "ims": ims},
+    )
     seq = ZjuSequence(tmp_path)
     assert seq.camera_dirs == ["images/cam_a", "images/cam_b"]
     assert seq.mask_path(1, 1).relative_to(tmp_path).as_posix() == "mask/cam_b/000001.png"

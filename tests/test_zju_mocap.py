@@ -89,8 +89,9 @@ def distort_normalized(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], -1)  # fmt: skip
+    return np.stack(
+        [x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], -1
+    )
 
 
 def undistort_points(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -129,8 +130,9 @@ def test_downscale_K_formula(tmp_path: Path) -> None:
     torch.testing.assert_close(K3[:, :2, :], K[:, :2, :] * s, rtol=1e-6, atol=1e-5)
     # in OpenCV's convention the same map is cx' = (cx_cv + 0.5) * s - 0.5
     seq = ZjuSequence(tmp_path)
-    torch.testing.assert_close(K3[:, 0, 2] - 0.5, torch.from_numpy((seq.cameras.K[:, 0, 2] + 0.5) * s - 0.5),
-                               rtol=0, atol=1e-5)  # fmt: skip
+    torch.testing.assert_close(
+        K3[:, 0, 2] - 0.5, torch.from_numpy((seq.cameras.K[:, 0, 2] + 0.5) * s - 0.5), rtol=0, atol=1e-5
+    )
     assert third[0].image.shape == (1, 21, 21, 3)
 
 
@@ -153,8 +155,13 @@ def test_undistortion_keeps_K_and_moves_pixels(tmp_path: Path) -> None:
         uv = project(K[c], R[c], T[c], X)[0]
         g = np.exp(-((und[..., 0] - uv[0]) ** 2 + (und[..., 1] - uv[1]) ** 2) / (2 * 1.6**2))
         imgs.append(np.repeat(np.round(255 * g).astype(np.uint8)[..., None], 3, -1))
-    w.write_frame(0, np.stack(imgs), np.ones((C, size, size), np.uint8), {"poses": np.zeros(72), "Rh": np.zeros(3),
-                  "Th": np.zeros(3)}, X)  # fmt: skip
+    w.write_frame(
+        0,
+        np.stack(imgs),
+        np.ones((C, size, size), np.uint8),
+        {"poses": np.zeros(72), "Rh": np.zeros(3), "Th": np.zeros(3)},
+        X,
+    )
     w.finish()
     ds = ZjuMocapDataset(str(tmp_path), protocol=None, mask_background=False)
     np.testing.assert_allclose(ds.cameras.K.double().numpy(), K, rtol=1e-6)  # K kept (in our pixel convention)
@@ -195,8 +202,14 @@ def test_aninerf_protocol_on_313(core313: Path) -> None:
 def test_dense_and_explicit_protocols(core313: Path) -> None:
     d = ZjuMocapDataset(str(core313), protocol="dense")
     assert d.test_views == [3, 9, 15] and len(d.train_views) == 18
-    e = ZjuMocapDataset(str(core313), split="novel_pose", protocol="aninerf_4view", train_views=[1, 2],
-                        novel_pose_frames=[40, 64, 4], eval_frame_step=1)  # fmt: skip
+    e = ZjuMocapDataset(
+        str(core313),
+        split="novel_pose",
+        protocol="aninerf_4view",
+        train_views=[1, 2],
+        novel_pose_frames=[40, 64, 4],
+        eval_frame_step=1,
+    )
     assert e.frame_ids == list(range(40, 64, 4)) and 1 not in e.views and 0 in e.views
     with pytest.raises(ValueError, match="outside 0..63"):
         ZjuMocapDataset(str(core313), protocol=None, train_frames=[70])
@@ -208,8 +221,14 @@ def test_protocol_needs_frames_for_unknown_sequence(tmp_path: Path) -> None:
     write_toy_sequence(tmp_path / "studio", C=4, F=3, size=16)
     with pytest.raises(ValueError, match="train_frames=\\[start, end, step\\]"):
         ZjuMocapDataset(str(tmp_path / "studio"), protocol="aninerf_4view")
-    ds = ZjuMocapDataset(str(tmp_path / "studio"), split="novel_pose", protocol=None, train_frames=[0, 2],
-                         novel_pose_frames=[2, None], test_views=[3])  # fmt: skip
+    ds = ZjuMocapDataset(
+        str(tmp_path / "studio"),
+        split="novel_pose",
+        protocol=None,
+        train_frames=[0, 2],
+        novel_pose_frames=[2, None],
+        test_views=[3],
+    )
     assert ds.frame_ids == [2] and ds.views == [3]
 
 
@@ -224,12 +243,17 @@ def test_h36m_layout(tmp_path: Path) -> None:
             for sub, val in ((rel, 90), (rel.replace("images", "mask").replace(".jpg", ".png"), 1)):
                 (root / sub).parent.mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(root / sub), np.full((8, 8), val, np.uint8))
-    np.save(root / "annots.npy", {"cams": {"K": list(K), "D": [np.zeros((5, 1))] * 4, "R": list(R),
-                                           "T": list(T[..., None] * 1000)}, "ims": ims}, allow_pickle=True)  # fmt: skip
+    np.save(
+        root / "annots.npy",
+        {"cams": {"K": list(K), "D": [np.zeros((5, 1))] * 4, "R": list(R), "T": list(T[..., None] * 1000)}, "ims": ims},
+        allow_pickle=True,
+    )
     (root / "new_params").mkdir()
     for f in range(3):
-        np.save(root / "new_params" / f"{f}.npy", {"poses": np.zeros((1, 72)), "Rh": np.zeros((1, 3)),
-                                                   "Th": np.zeros((1, 3)), "shapes": np.zeros((1, 10))})  # fmt: skip
+        np.save(
+            root / "new_params" / f"{f}.npy",
+            {"poses": np.zeros((1, 72)), "Rh": np.zeros((1, 3)), "Th": np.zeros((1, 3)), "shapes": np.zeros((1, 10))},
+        )
     ds = ZjuMocapDataset(str(root), split="novel_view", protocol="aninerf_4view", train_frames=[0, 3])
     assert ds.sequence == "S9" and ds.views == [3] and ds.train_views == [0, 1, 2]
     b = ds[0]
@@ -264,8 +288,9 @@ def test_boundary_half_width_scales_with_the_image_side(tmp_path: Path, size: in
     """boundary_px=5 at boundary_ref_side=512: n = max(1, round(5 * side / 512)) of the output image (after the
     downscale), and the band is exactly `boundary_mask` at that n."""
     write_toy_sequence(tmp_path, C=2, F=1, size=size)
-    ds = ZjuMocapDataset(str(tmp_path), protocol=None, boundary_px=5, boundary_ref_side=512, downscale=downscale,
-                         cache_mb=0)  # fmt: skip
+    ds = ZjuMocapDataset(
+        str(tmp_path), protocol=None, boundary_px=5, boundary_ref_side=512, downscale=downscale, cache_mb=0
+    )
     side = min(ds.width, ds.height)
     assert ds.boundary_px == expected == max(1, int(5 * side / 512 + 0.5))
     f, v = ds.sample(1)
@@ -322,8 +347,11 @@ def test_bad_camera_count(tmp_path: Path) -> None:
     import shutil
 
     shutil.rmtree(tmp_path / "Camera_B2")
-    with pytest.raises(ZjuFormatError, match=r"'cams' has 3 cameras but 1 of their image folders are missing.*"
-                                             r"Camera_B2.*found folders"):  # fmt: skip
+    with pytest.raises(
+        ZjuFormatError,
+        match=r"'cams' has 3 cameras but 1 of their image folders are missing.*"
+        r"Camera_B2.*found folders",
+    ):
         ZjuMocapDataset(str(tmp_path), protocol=None)
 
 
@@ -340,16 +368,22 @@ def test_bad_nan_pose(tmp_path: Path) -> None:
     p = np.load(tmp_path / "params" / "2.npy", allow_pickle=True).item()
     p["poses"][0, 16] = np.nan
     np.save(tmp_path / "params" / "2.npy", p)
-    with pytest.raises(ZjuFormatError, match=r"params/2\.npy \(frame 2\): 'poses' has a non-finite value nan at "
-                                             r"index 16 \(joint 5\); expected finite"):  # fmt: skip
+    with pytest.raises(
+        ZjuFormatError,
+        match=r"params/2\.npy \(frame 2\): 'poses' has a non-finite value nan at "
+        r"index 16 \(joint 5\); expected finite",
+    ):
         ZjuMocapDataset(str(tmp_path), protocol=None)
 
 
 def test_bad_body_joint_count(tmp_path: Path, body: ProceduralBody) -> None:
     write_toy_sequence(tmp_path, C=2, F=1, size=16, J=24, body="smpl")
     ds = ZjuMocapDataset(str(tmp_path), protocol=None)
-    with pytest.raises(ZjuFormatError, match=r"params/0\.npy: stored poses have 24 joints \(72 values per frame\) "
-                                             r"but body model 'procedural' has 17 joints.*body=smpl"):  # fmt: skip
+    with pytest.raises(
+        ZjuFormatError,
+        match=r"params/0\.npy: stored poses have 24 joints \(72 values per frame\) "
+        r"but body model 'procedural' has 17 joints.*body=smpl",
+    ):
         check_body_compatible(ds, body)
 
 

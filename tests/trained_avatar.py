@@ -18,11 +18,23 @@ import torch
 from filelock import FileLock
 
 TRAIN = [
-    "+experiment=paper_full", "body=procedural", "data.body=procedural", "data.resolution=32", "data.views=4",
-    "data.frames=6", "data.supersample=1", "deformer.grid_resolution=12", "gaussians.num=300",
-    "gaussians.sh_increase_every=1", "stages.stage1_steps=2", "trainer.max_steps=4", "callbacks.progress_bar=false",
-    "eval.after_fit=false", "logger=none", "threads=1",
-]  # fmt: skip
+    "+experiment=paper_full",
+    "body=procedural",
+    "data.body=procedural",
+    "data.resolution=32",
+    "data.views=4",
+    "data.frames=6",
+    "data.supersample=1",
+    "deformer.grid_resolution=12",
+    "gaussians.num=300",
+    "gaussians.sh_increase_every=1",
+    "stages.stage1_steps=2",
+    "trainer.max_steps=4",
+    "callbacks.progress_bar=false",
+    "eval.after_fit=false",
+    "logger=none",
+    "threads=1",
+]
 
 
 def tiny_checkpoint(root: Path) -> tuple[Path, Path]:
@@ -53,8 +65,10 @@ def _train_tiny(root: Path, path: Path, cache: Path) -> None:
     sd["avatar.gaussians.params.shN"] = shN
     sd["avatar.corrector.head.weight"] = rand(sd["avatar.corrector.head.weight"].shape, 0.02)
     sd["avatar.corrector.head.bias"] = rand(sd["avatar.corrector.head.bias"].shape, 0.1)
-    last_layer = max((k for k in sd if k.startswith("avatar.deformer.mlp.") and k.endswith(".weight")),
-                     key=lambda k: int(k.split(".")[3]))  # fmt: skip
+    last_layer = max(
+        (k for k in sd if k.startswith("avatar.deformer.mlp.") and k.endswith(".weight")),
+        key=lambda k: int(k.split(".")[3]),
+    )
     # small enough that w0 + F_dw (paper_full's additive form, not renormalised) stays a usable weight set
     sd[last_layer] = rand(sd[last_layer].shape, 0.05)
     sd["avatar.pose_refiner.pose_residual"] = rand(sd["avatar.pose_refiner.pose_residual"].shape, 0.05)

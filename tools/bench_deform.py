@@ -70,8 +70,10 @@ def main() -> None:
         deff.bind(body, bounds)
 
         def step(corr=corr, deff=deff):
-            params = {k: getattr(g0, k).clone().requires_grad_() for k in ("means", "quats", "log_scales", "sh",
-                                                                             "opacity_logits", "latents")}  # fmt: skip
+            params = {
+                k: getattr(g0, k).clone().requires_grad_()
+                for k in ("means", "quats", "log_scales", "sh", "opacity_logits", "latents")
+            }
             g = g0.replace(**params)
             out = deff(corr(g, body.pose_features(pose)[0]), T)
             p = out.posed

@@ -80,10 +80,13 @@ def trained_avatar(ckpt: str, device: str) -> tuple[Avatar, int]:
 def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str) -> FrameBatch:
     """The batch of frame i: camera i of the orbit, `pose` [1, J, 3]; image tensors are placeholders (not read)."""
     return FrameBatch(
-        image=torch.empty(1, res, res, 3, device=device), mask=torch.empty(1, res, res, device=device),
-        boundary=torch.empty(1, res, res, device=device), cameras=cams.index(i % cams.num),
-        frame=torch.zeros(1, dtype=torch.long, device=device), pose=pose,
-    )  # fmt: skip
+        image=torch.empty(1, res, res, 3, device=device),
+        mask=torch.empty(1, res, res, device=device),
+        boundary=torch.empty(1, res, res, device=device),
+        cameras=cams.index(i % cams.num),
+        frame=torch.zeros(1, dtype=torch.long, device=device),
+        pose=pose,
+    )
 
 
 POSE_PARTS = ("bone transforms", "corrector F_a", "LBS (polar, skinning)", "view colour (SH at R^T d)", "rasterizer")
@@ -105,9 +108,15 @@ def pose_frame(
         sh, degree = avatar._view_colour(posed, deformed.sh_frames, batch, sh_degree), 0
     mark()
     out = avatar.rasterizer.render(
-        posed.means, posed.quats, torch.exp(posed.log_scales), torch.sigmoid(posed.opacity_logits), sh,
-        batch.cameras, sh_degree=degree, background=avatar.background,
-    )  # fmt: skip
+        posed.means,
+        posed.quats,
+        torch.exp(posed.log_scales),
+        torch.sigmoid(posed.opacity_logits),
+        sh,
+        batch.cameras,
+        sh_degree=degree,
+        background=avatar.background,
+    )
     mark()
     return out
 
@@ -174,9 +183,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--json", default=None)
     ap.add_argument("--scaling", action="store_true", help="fit each part as fixed + per-Gaussian cost")
-    ap.add_argument("--accelerator-path", action="store_true",
-                    help="run a GPU's torch code on this CPU (compiled CPU paths off): its operators and host waits, "
-                         "and at a small size the host's cost of a frame")  # fmt: skip
+    ap.add_argument(
+        "--accelerator-path",
+        action="store_true",
+        help="run a GPU's torch code on this CPU (compiled CPU paths off): its operators and host waits, "
+        "and at a small size the host's cost of a frame",
+    )
     args = ap.parse_args()
     if args.accelerator_path:
         use_compiled_paths(False)
@@ -246,8 +258,10 @@ def pose_path_report(
     pose_only = sum(v for k, v in parts.items() if k != "rasterizer")
     pose_ops = [sum(c[i] for k, c in counts.items() if k != "rasterizer") for i in (0, 1, 2)]
     view = view_ms[name]
-    print(f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued, those "
-          f"queuing device work and host waits of one frame, _bench.host_waits):\n")  # fmt: skip
+    print(
+        f"\nNovel-pose frame of {name}, part by part (medians of {args.repeats} frames, ms; operators issued, those "
+        f"queuing device work and host waits of one frame, _bench.host_waits):\n"
+    )
     table = [(k, f"{v:.1f}", f"{v / view:.2f}x", *counts[k]) for k, v in parts.items()]
     table.append(("pose path (all but the rasterizer)", f"{pose_only:.1f}", f"{pose_only / view:.2f}x", *pose_ops))
     header = ("part", "ms", "of the novel-view frame", "operators", "queue device work", "host waits")
@@ -255,8 +269,10 @@ def pose_path_report(
     with torch.no_grad():
         device_events = cuda_device_events(lambda: pose_frame(avatar, batches[-1], sh_degree, lambda: None))
     if device_events is not None:
-        print(f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included "
-              f"(torch.profiler): {device_events}")  # fmt: skip
+        print(
+            f"\nKernels, copies and fills the GPU ran for one novel-pose frame, rasterizer included "
+            f"(torch.profiler): {device_events}"
+        )
     with torch.no_grad():
         _, pose_features = avatar.bone_transforms(batches[0])
     gflop = corrector_gflop(avatar, pose_features) if pose_features is not None else 0.0
@@ -269,11 +285,16 @@ def pose_path_report(
         f"novel-pose / novel-view >= {bound:.2f}x (the parts measure {(view + pose_only) / view:.2f}x)."
     )
     return {
-        "backend": name, "parts_ms": parts, "parts_operators_launches_waits": counts, "novel_view_ms": view,
+        "backend": name,
+        "parts_ms": parts,
+        "parts_operators_launches_waits": counts,
+        "novel_view_ms": view,
         "cuda_device_events_per_frame": device_events,
         "corrector_gflop": gflop,
-        "best_sgemm_gflops": rate, "corrector_floor_ms": floor_ms, "ratio_lower_bound": bound,
-    }  # fmt: skip
+        "best_sgemm_gflops": rate,
+        "corrector_floor_ms": floor_ms,
+        "ratio_lower_bound": bound,
+    }
 
 
 SCALING_FRACTIONS = (1.0, 0.5, 0.25, 0.02)

@@ -293,8 +293,9 @@ class Instrument:
         module.log_dict = c.wrap("logging (self.log, logger)", module.log_dict)
         connector = getattr(trainer, "_logger_connector", None)
         if connector is not None and hasattr(connector, "update_train_step_metrics"):
-            connector.update_train_step_metrics = c.wrap("logging (self.log, logger)",
-                                                         connector.update_train_step_metrics)  # fmt: skip
+            connector.update_train_step_metrics = c.wrap(
+                "logging (self.log, logger)", connector.update_train_step_metrics
+            )
         module.training_step = c.wrap("training_step glue", module.training_step)
         for cb in trainer.callbacks:
             if cb is self.callback:
@@ -722,20 +723,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=80, help="total steps per variant; the stage switch is halfway")
     ap.add_argument("--warmup", type=int, default=5, help="steps dropped at the start of each stage")
     ap.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, help=f"from {sorted(VARIANTS)}")
-    ap.add_argument("--variant", action="append", default=[], metavar="NAME=OVERRIDE,OVERRIDE",
-                    help="an extra variant with its own Hydra overrides")  # fmt: skip
+    ap.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=OVERRIDE,OVERRIDE",
+        help="an extra variant with its own Hydra overrides",
+    )
     ap.add_argument("--rounds", type=int, default=1, help="run the variant list this many times, interleaved")
     ap.add_argument("--stage2-sh-degree", type=int, default=-1, help="-1: the config's maximum SH degree")
     ap.add_argument("--raster-repeats", type=int, default=10)
-    ap.add_argument("--sections-sync", choices=("auto", "on", "off"), default="auto",
-                    help="synchronise a CUDA device at every section boundary (auto: on CUDA) so each row holds its "
-                         "own kernels; off measures the unsynchronised step (host and device overlapping)")  # fmt: skip
+    ap.add_argument(
+        "--sections-sync",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="synchronise a CUDA device at every section boundary (auto: on CUDA) so each row holds its "
+        "own kernels; off measures the unsynchronised step (host and device overlapping)",
+    )
     ap.add_argument("--cold-data", action="store_true", help="do not decode the dataset's images before timing")
-    ap.add_argument("--accelerator-path", action="store_true",
-                    help="switch the compiled CPU kernels off: a CPU runs the torch code a GPU runs")  # fmt: skip
+    ap.add_argument(
+        "--accelerator-path",
+        action="store_true",
+        help="switch the compiled CPU kernels off: a CPU runs the torch code a GPU runs",
+    )
     ap.add_argument("--json", default=None, help="write every step's timings here")
-    ap.add_argument("--trace", type=int, default=0, metavar="K",
-                    help="print torch.profiler's top K operators by self CPU time in stage 2")  # fmt: skip
+    ap.add_argument(
+        "--trace",
+        type=int,
+        default=0,
+        metavar="K",
+        help="print torch.profiler's top K operators by self CPU time in stage 2",
+    )
     ap.add_argument("overrides", nargs="*", help="Hydra overrides for every variant (after --)")
     args = ap.parse_args(argv)
     os.environ.setdefault("SPLATRIG_CACHE_DIR", str(Path.home() / ".cache" / "splatrig"))
@@ -771,8 +789,11 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 results[name] = res
             s2 = stage_summary(res, 2, args.warmup)
-            print(f"[bench_train]   stage 2 median {s2['step_median_ms'] if s2 else float('nan'):.1f} ms "
-                  f"{res.note}", file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"[bench_train]   stage 2 median {s2['step_median_ms'] if s2 else float('nan'):.1f} ms {res.note}",
+                file=sys.stderr,
+                flush=True,
+            )
     load1 = os.getloadavg()
     use_compiled_paths(compiled_before)
     ordered = list(results.values())

@@ -45,8 +45,15 @@ DEFAULT_SETTINGS: dict[str, dict] = {
     "prune 0.045": {"prune_tolerance": 0.045},
     "prune 0.06": {"prune_tolerance": 0.06},
 }
-PRUNE_KEYS = ("fold_tolerance", "prune_tolerance", "refit_steps", "prune_rounds", "min_weight", "sh_tolerance",
-              "max_frames")  # fmt: skip
+PRUNE_KEYS = (
+    "fold_tolerance",
+    "prune_tolerance",
+    "refit_steps",
+    "prune_rounds",
+    "min_weight",
+    "sh_tolerance",
+    "max_frames",
+)
 
 
 @dataclass
@@ -132,8 +139,17 @@ def compact_all(ckpt: Path, out: Path, settings: dict[str, dict], device: str) -
     return made
 
 
-def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], warmup: int, repeats: int,
-          rounds: int, device: str, rasterizer: str | None = None) -> list[TradeRow]:  # fmt: skip
+def trade(
+    reference: Path,
+    ckpt: Path,
+    out: Path,
+    settings: dict[str, dict],
+    warmup: int,
+    repeats: int,
+    rounds: int,
+    device: str,
+    rasterizer: str | None = None,
+) -> list[TradeRow]:
     """Compact, measure PSNR, time interleaved; one row per setting (the model as trained included if asked)."""
     from framework.compaction.compact import measure_module
     from framework.lightning.trained_model import datamodule_for, interleaved_fps, load_module
@@ -155,28 +171,34 @@ def trade(reference: Path, ckpt: Path, out: Path, settings: dict[str, dict], war
     rows = []
     for name, path in paths.items():
         m = measures[name]
-        rows.append(TradeRow(
-            setting=name,
-            overrides=" ".join(f"{k}={_yaml_value(v)}" for k, v in settings[name].items()) or "-",
-            num_gaussians=int(m["num_gaussians"]),
-            corrector_rows=_corrector_rows(path),
-            smaller=ref.model_bytes / m["model_bytes"],
-            psnr_novel_view=m["psnr"]["novel_view"] - ref.psnr["novel_view"],
-            psnr_novel_pose=m["psnr"]["novel_pose"] - ref.psnr["novel_pose"],
-            novel_pose_fps=fps[name][0],
-            fps_ratio=fps[name][0] / fps["reference"][0],
-        ))  # fmt: skip
+        rows.append(
+            TradeRow(
+                setting=name,
+                overrides=" ".join(f"{k}={_yaml_value(v)}" for k, v in settings[name].items()) or "-",
+                num_gaussians=int(m["num_gaussians"]),
+                corrector_rows=_corrector_rows(path),
+                smaller=ref.model_bytes / m["model_bytes"],
+                psnr_novel_view=m["psnr"]["novel_view"] - ref.psnr["novel_view"],
+                psnr_novel_pose=m["psnr"]["novel_pose"] - ref.psnr["novel_pose"],
+                novel_pose_fps=fps[name][0],
+                fps_ratio=fps[name][0] / fps["reference"][0],
+            )
+        )
     return rows
 
 
 def markdown(rows: list[TradeRow], target_fps: float, budget_db: float) -> str:
-    lines = ["| setting | overrides | Gaussians | F_a rows | smaller | PSNR novel view / novel pose dB "
-             f"| novel-pose fps | meets {target_words(target_fps, budget_db)} |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "| setting | overrides | Gaussians | F_a rows | smaller | PSNR novel view / novel pose dB "
+        f"| novel-pose fps | meets {target_words(target_fps, budget_db)} |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r.setting} | `{r.overrides}` | {r.num_gaussians} | {r.corrector_rows} | {r.smaller:.2f}x | "
-                     f"{r.psnr_novel_view:+.2f} / {r.psnr_novel_pose:+.2f} | {r.novel_pose_fps:.1f} "
-                     f"({r.fps_ratio:.2f}x) | {'yes' if r.meets(target_fps, budget_db) else 'no'} |")  # fmt: skip
+        lines.append(
+            f"| {r.setting} | `{r.overrides}` | {r.num_gaussians} | {r.corrector_rows} | {r.smaller:.2f}x | "
+            f"{r.psnr_novel_view:+.2f} / {r.psnr_novel_pose:+.2f} | {r.novel_pose_fps:.1f} "
+            f"({r.fps_ratio:.2f}x) | {'yes' if r.meets(target_fps, budget_db) else 'no'} |"
+        )
     return "\n".join(lines)
 
 
@@ -203,8 +225,14 @@ def plot(rows: list[TradeRow], path: Path, target_fps: float, budget_db: float, 
     ys = [v for r in rows for v in (r.psnr_novel_view, r.psnr_novel_pose)]
     x_hi = max(max(xs), target_fps) * 1.08
     y_lo = min(min(ys), -budget_db) - 0.1
-    ax.fill_between([target_fps, x_hi], -budget_db, max(max(ys), 0.0) + 0.1, color="tab:green", alpha=0.12,
-                    label=f"target: {target_words(target_fps, budget_db)}")  # fmt: skip
+    ax.fill_between(
+        [target_fps, x_hi],
+        -budget_db,
+        max(max(ys), 0.0) + 0.1,
+        color="tab:green",
+        alpha=0.12,
+        label=f"target: {target_words(target_fps, budget_db)}",
+    )
     ax.axhline(0.0, color="grey", lw=0.8)
     ax.axvline(1.0, color="grey", lw=0.8)
     for i, r in enumerate(rows):
@@ -214,8 +242,9 @@ def plot(rows: list[TradeRow], path: Path, target_fps: float, budget_db: float, 
         # labels above the upper marker and below the lower one in turn, so neighbours in x do not overprint
         upper = i % 2 == 0
         y = max(r.psnr_novel_view, r.psnr_novel_pose) if upper else min(r.psnr_novel_view, r.psnr_novel_pose)
-        ax.annotate(r.setting, (r.fps_ratio, y), textcoords="offset points", xytext=(4, 5 if upper else -12),
-                    fontsize=8)  # fmt: skip
+        ax.annotate(
+            r.setting, (r.fps_ratio, y), textcoords="offset points", xytext=(4, 5 if upper else -12), fontsize=8
+        )
     ax.scatter([], [], marker="o", color="tab:blue", label="novel view")
     ax.scatter([], [], marker="x", color="tab:red", label="novel pose")
     ax.set_xlim(min(min(xs), 1.0) - 0.05, x_hi)
@@ -235,8 +264,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reference", type=Path, required=True, help="the run to compare against (paper_full's ckpt)")
     ap.add_argument("--ckpt", type=Path, required=True, help="the trained model to compact (not a compact one)")
     ap.add_argument("--out", type=Path, default=Path("outputs/compaction_trade"))
-    ap.add_argument("--setting", action="append", default=[], metavar="NAME=KEY=VALUE[,KEY=VALUE]",
-                    help="replaces the default settings (repeat it); `as trained` is always included")  # fmt: skip
+    ap.add_argument(
+        "--setting",
+        action="append",
+        default=[],
+        metavar="NAME=KEY=VALUE[,KEY=VALUE]",
+        help="replaces the default settings (repeat it); `as trained` is always included",
+    )
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds of frame-rate timing (medians)")
@@ -261,8 +295,10 @@ def main(argv: list[str] | None = None) -> None:
     )
     table = markdown(rows, args.target_fps, args.budget_db)
     backend = f"rasterizer {args.rasterizer}" if args.rasterizer else "each model's own rasterizer"
-    header = (f"# compaction trade of `{args.ckpt}` against `{args.reference}`\n\ndevice {device}; {backend}; frame "
-              f"rates interleaved over {args.rounds} rounds (medians)\n\n")  # fmt: skip
+    header = (
+        f"# compaction trade of `{args.ckpt}` against `{args.reference}`\n\ndevice {device}; {backend}; frame "
+        f"rates interleaved over {args.rounds} rounds (medians)\n\n"
+    )
     (args.out / "compaction_trade.md").write_text(header + table + "\n")
     write_csv(rows, args.out / "compaction_trade.csv")
     title = "/".join(args.ckpt.resolve().parts[-4:-2]) + " against " + "/".join(args.reference.resolve().parts[-4:-2])

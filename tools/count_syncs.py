@@ -124,8 +124,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=40, help="training steps; the stage switch is forced halfway")
     ap.add_argument("--warmup", type=int, default=3, help="steps left out at the start of each stage")
     ap.add_argument("--native", action="store_true", help="keep this machine's compiled CPU paths")
-    ap.add_argument("--top-operators", type=int, default=15, metavar="K",
-                    help="list the K functions of ours that issue the most operators per step (0: none)")  # fmt: skip
+    ap.add_argument(
+        "--top-operators",
+        type=int,
+        default=15,
+        metavar="K",
+        help="list the K functions of ours that issue the most operators per step (0: none)",
+    )
     ap.add_argument("overrides", nargs="*", help="Hydra overrides (after --)")
     args = ap.parse_args(argv)
     if args.steps < 2 * (args.warmup + 1):
@@ -154,9 +159,17 @@ def main(argv: list[str] | None = None) -> None:
     cls.training_step = training_step
     out = tempfile.mkdtemp(prefix="count_syncs_")
     gpu_like = [] if args.native else ["divergence.deferred=true"]  # a GPU's divergence checks too
-    overrides = [f"+experiment={args.experiment}", f"profile={args.profile}", f"trainer.max_steps={args.steps}",
-                 f"stages.stage1_steps={switch}", "eval.after_fit=false", "trainer.val_every=1000000",
-                 f"paths.output_dir={out}", *gpu_like, *args.overrides]  # fmt: skip
+    overrides = [
+        f"+experiment={args.experiment}",
+        f"profile={args.profile}",
+        f"trainer.max_steps={args.steps}",
+        f"stages.stage1_steps={switch}",
+        "eval.after_fit=false",
+        "trainer.val_every=1000000",
+        f"paths.output_dir={out}",
+        *gpu_like,
+        *args.overrides,
+    ]
     with initialize_config_module(config_module="framework.conf", version_base=None):
         cfg = compose(config_name="train", overrides=overrides)
     try:

@@ -25,16 +25,26 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # (name, parent, offset in cm): a CMU-style T-pose skeleton facing +Z
 SKELETON = [
-    ("Hips", None, (0, 95, 0)), ("Spine", "Hips", (0, 10, 0)), ("Spine1", "Spine", (0, 22, 0)),
-    ("Neck", "Spine1", (0, 22, 0)), ("Head", "Neck", (0, 10, 0)),
-    ("LeftShoulder", "Spine1", (4, 17, 0)), ("LeftArm", "LeftShoulder", (14, 0, 0)),
-    ("LeftForeArm", "LeftArm", (28, 0, 0)), ("LeftHand", "LeftForeArm", (24, 0, 0)),
-    ("RightShoulder", "Spine1", (-4, 17, 0)), ("RightArm", "RightShoulder", (-14, 0, 0)),
-    ("RightForeArm", "RightArm", (-28, 0, 0)), ("RightHand", "RightForeArm", (-24, 0, 0)),
-    ("LeftUpLeg", "Hips", (9, -6, 0)), ("LeftLeg", "LeftUpLeg", (0, -42, 0)), ("LeftFoot", "LeftLeg", (0, -42, 0)),
-    ("RightUpLeg", "Hips", (-9, -6, 0)), ("RightLeg", "RightUpLeg", (0, -42, 0)),
+    ("Hips", None, (0, 95, 0)),
+    ("Spine", "Hips", (0, 10, 0)),
+    ("Spine1", "Spine", (0, 22, 0)),
+    ("Neck", "Spine1", (0, 22, 0)),
+    ("Head", "Neck", (0, 10, 0)),
+    ("LeftShoulder", "Spine1", (4, 17, 0)),
+    ("LeftArm", "LeftShoulder", (14, 0, 0)),
+    ("LeftForeArm", "LeftArm", (28, 0, 0)),
+    ("LeftHand", "LeftForeArm", (24, 0, 0)),
+    ("RightShoulder", "Spine1", (-4, 17, 0)),
+    ("RightArm", "RightShoulder", (-14, 0, 0)),
+    ("RightForeArm", "RightArm", (-28, 0, 0)),
+    ("RightHand", "RightForeArm", (-24, 0, 0)),
+    ("LeftUpLeg", "Hips", (9, -6, 0)),
+    ("LeftLeg", "LeftUpLeg", (0, -42, 0)),
+    ("LeftFoot", "LeftLeg", (0, -42, 0)),
+    ("RightUpLeg", "Hips", (-9, -6, 0)),
+    ("RightLeg", "RightUpLeg", (0, -42, 0)),
     ("RightFoot", "RightLeg", (0, -42, 0)),
-]  # fmt: skip
+]
 
 
 def jumping_jacks(path: Path, fps: int = 60, seconds: float = 2.0) -> Path:
@@ -48,19 +58,29 @@ def jumping_jacks(path: Path, fps: int = 60, seconds: float = 2.0) -> Path:
     t = np.arange(n) / fps
     s = 0.5 * (1 - np.cos(2 * np.pi * t))  # 0 -> 1 -> 0 each second
     angles = {  # joint -> [n] degrees about Z (the BVH's forward axis)
-        "LeftArm": -70 + 150 * s, "RightArm": 70 - 150 * s, "LeftForeArm": 15 * s, "RightForeArm": -15 * s,
-        "LeftUpLeg": 14 * s, "RightUpLeg": -14 * s, "LeftFoot": -14 * s, "RightFoot": 14 * s,
-    }  # fmt: skip
+        "LeftArm": -70 + 150 * s,
+        "RightArm": 70 - 150 * s,
+        "LeftForeArm": 15 * s,
+        "RightForeArm": -15 * s,
+        "LeftUpLeg": 14 * s,
+        "RightUpLeg": -14 * s,
+        "LeftFoot": -14 * s,
+        "RightFoot": 14 * s,
+    }
     joints = {}
     for name, parent, offset in SKELETON:
         joint = BvhJoint(name, glm.vec3(*offset))
-        joint.Channels = (["Xposition", "Yposition", "Zposition"] if parent is None else []) + \
-            ["Zrotation", "Xrotation", "Yrotation"]  # fmt: skip
+        joint.Channels = (["Xposition", "Yposition", "Zposition"] if parent is None else []) + [
+            "Zrotation",
+            "Xrotation",
+            "Yrotation",
+        ]
         if not any(p == name for _, p, _ in SKELETON):
             joint.EndSite = glm.vec3(0, 8, 0) if name == "Head" else glm.vec3(*offset) * 0.3
         for i in range(n):
             w, x, y, z = Rotation.from_euler("z", angles.get(name, np.zeros(n))[i], degrees=True).as_quat(
-                scalar_first=True)  # fmt: skip
+                scalar_first=True
+            )
             position = glm.vec3(0, 95 + 6 * np.sin(np.pi * s[i]) ** 2, 0) if parent is None else glm.vec3(*offset)
             joint.Keyframes.append(Pose(position, glm.quat(w, x, y, z)))
         joints[name] = joint
@@ -75,8 +95,18 @@ def render_strip(ckpt: Path, bvh: Path, out: Path, camera_index: int) -> Path:
     import imageio.v3 as iio
 
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "framework.render", f"ckpt={ckpt}", f"motion={bvh}", "cameras=fixed",
-               f"camera_index={camera_index}", "resolution=256", "fps=25", f"out_dir={tmp}"]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "framework.render",
+            f"ckpt={ckpt}",
+            f"motion={bvh}",
+            "cameras=fixed",
+            f"camera_index={camera_index}",
+            "resolution=256",
+            "fps=25",
+            f"out_dir={tmp}",
+        ]
         subprocess.run(cmd, check=True, cwd=ROOT)
         frames = sorted(Path(tmp, "frames").glob("*.png"))
         picks = [frames[i] for i in (0, 6, 12, 19)]  # 0, 0.24, 0.48, 0.76 s: the first jump at 25 fps

@@ -82,14 +82,20 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     ssim = ssim_errors(args.size, args.seed)
     lbs = lbs_errors(args.gaussians, args.seed)
-    print(f"TF32 emulated on the CPU (inputs rounded to a 10-bit mantissa), errors against float64; torch "
-          f"{torch.__version__}\n")  # fmt: skip
+    print(
+        f"TF32 emulated on the CPU (inputs rounded to a 10-bit mantissa), errors against float64; torch "
+        f"{torch.__version__}\n"
+    )
     print("| quantity | float64 value | float32 error | TF32 error |\n|---|---|---|---|")
-    print(f"| mean SSIM, {args.size}^2 image pair | {ssim['reference']:.6f} | {ssim['float32']:.1e} | "
-          f"{ssim['tf32']:.1e} |")  # fmt: skip
+    print(
+        f"| mean SSIM, {args.size}^2 image pair | {ssim['reference']:.6f} | {ssim['float32']:.1e} | "
+        f"{ssim['tf32']:.1e} |"
+    )
     for part in ("rotation-scale", "translation m"):
-        print(f"| LBS blend at {args.gaussians} Gaussians, {part} | - | {lbs[f'float32 {part}']:.1e} | "
-              f"{lbs[f'tf32 {part}']:.1e} |")  # fmt: skip
+        print(
+            f"| LBS blend at {args.gaussians} Gaussians, {part} | - | {lbs[f'float32 {part}']:.1e} | "
+            f"{lbs[f'tf32 {part}']:.1e} |"
+        )
 
 
 if __name__ == "__main__":

@@ -19,20 +19,36 @@ from framework.data.calibration_check import project
 from framework.data.overlay import render_tile
 
 
-def preview(root: str, frame: int, views: list[int] | None, out: str, downscale: float = 1.0,
-            mask_dir: str = "auto", crop: bool = True) -> list[float]:  # fmt: skip
+def preview(
+    root: str,
+    frame: int,
+    views: list[int] | None,
+    out: str,
+    downscale: float = 1.0,
+    mask_dir: str = "auto",
+    crop: bool = True,
+) -> list[float]:
     """Writes the PNG; returns the in-mask share of projected vertices per view."""
     import cv2
 
     from framework.data.zju.dataset import ZjuMocapDataset
 
-    probe = ZjuMocapDataset(root, protocol=None, train_frames=[frame], downscale=downscale, mask_dir=mask_dir,
-                            cache_mb=0)  # fmt: skip
+    probe = ZjuMocapDataset(
+        root, protocol=None, train_frames=[frame], downscale=downscale, mask_dir=mask_dir, cache_mb=0
+    )
     C = probe.cameras.num
     if views is None:
         views = sorted({round(k * C / 4) % C for k in range(4)})
-    ds = ZjuMocapDataset(root, protocol=None, train_frames=[frame], train_views=views, downscale=downscale,
-                         mask_dir=mask_dir, mask_background=False, cache_mb=0)  # fmt: skip
+    ds = ZjuMocapDataset(
+        root,
+        protocol=None,
+        train_frames=[frame],
+        train_views=views,
+        downscale=downscale,
+        mask_dir=mask_dir,
+        mask_background=False,
+        cache_mb=0,
+    )
     verts = ds.vertices(frame).double() if ds.seq.vertices_dir is not None else None
     tiles, shares = [], []
     for k in range(len(ds)):

@@ -38,10 +38,19 @@ SCENES: dict[str, list[str]] = {
 }
 VARIANTS: dict[str, list[str]] = {"paper_full": [], "auto": ["+scene=auto"]}
 #: the smoke run: the full commands at 50 steps, no evaluation inside training (the table measures PSNR itself)
-SMOKE = ["profile.max_steps=50", "profile.schedule.stage1=0.4", "profile.schedule.densify_start=0.2",
-         "profile.schedule.densify_stop=0.8", "profile.schedule.densify_every=0.2", "profile.schedule.sh_every=1",
-         "profile.schedule.val_every=1", "callbacks.image_every=1000", "callbacks.checkpoint_every=1000",
-         "eval.after_fit=false", "deformer.grid_resolution=32"]  # fmt: skip
+SMOKE = [
+    "profile.max_steps=50",
+    "profile.schedule.stage1=0.4",
+    "profile.schedule.densify_start=0.2",
+    "profile.schedule.densify_stop=0.8",
+    "profile.schedule.densify_every=0.2",
+    "profile.schedule.sh_every=1",
+    "profile.schedule.val_every=1",
+    "callbacks.image_every=1000",
+    "callbacks.checkpoint_every=1000",
+    "eval.after_fit=false",
+    "deformer.grid_resolution=32",
+]
 SMOKE_REFIT_STEPS = 20  # and a refit as short: the default 1500 steps would be most of the smoke run's time
 
 
@@ -63,8 +72,14 @@ def train(run_dir: Path, overrides: list[str]) -> dict:
     return json.loads(stats.read_text())
 
 
-def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune_options: dict | None = None,
-                  rasterizer: str | None = None) -> dict:  # fmt: skip
+def measure_scene(
+    scene_dir: Path,
+    warmup: int,
+    repeats: int,
+    rounds: int,
+    prune_options: dict | None = None,
+    rasterizer: str | None = None,
+) -> dict:
     """paper_full measured and auto pruned (sizes and PSNR before and after; `prune_options` go to
     `prune_checkpoint`, whose defaults `python -m framework.prune` uses), then the three models' frame rates,
     interleaved over `rounds` rounds (medians), rendered with `rasterizer` (default: the one they trained with)."""
@@ -79,15 +94,29 @@ def measure_scene(scene_dir: Path, warmup: int, repeats: int, rounds: int, prune
     pruned_ckpt = auto_ckpt.with_name("final.pruned.ckpt")
     report = prune_checkpoint(auto_ckpt, pruned_ckpt, repeats=0, device=_device(), **(prune_options or {}))
     measures = {"paper_full": full.__dict__, "auto": report.before.__dict__, "auto+pruned": report.after.__dict__}
-    fps = interleaved_fps({"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt}, warmup, repeats,
-                          rounds, _device(), rasterizer)  # fmt: skip
+    fps = interleaved_fps(
+        {"paper_full": full_ckpt, "auto": auto_ckpt, "auto+pruned": pruned_ckpt},
+        warmup,
+        repeats,
+        rounds,
+        _device(),
+        rasterizer,
+    )
     for name, (pose_fps, view_fps) in fps.items():
         measures[name].update(novel_pose_fps=pose_fps, novel_view_fps=view_fps)
-    return {**measures, "removed_gaussians": report.removed_gaussians, "corrector_fold": report.corrector_fold,
-            "compaction": {"removed_within_tolerance": report.removed_within_tolerance,
-                           "prune_tolerance": report.prune_tolerance, "render_rms": report.render_rms,
-                           "skin_weights_stored": report.skin_weights_stored, "refit": report.refit,
-                           "corrector_kept": report.corrector_kept}}  # fmt: skip
+    return {
+        **measures,
+        "removed_gaussians": report.removed_gaussians,
+        "corrector_fold": report.corrector_fold,
+        "compaction": {
+            "removed_within_tolerance": report.removed_within_tolerance,
+            "prune_tolerance": report.prune_tolerance,
+            "render_rms": report.render_rms,
+            "skin_weights_stored": report.skin_weights_stored,
+            "refit": report.refit,
+            "corrector_kept": report.corrector_kept,
+        },
+    }
 
 
 def _device() -> str:
@@ -109,17 +138,35 @@ def scene_table(name: str, result: dict) -> str:
         refit = (result.get("compaction") or {}).get("refit") if variant == "auto+pruned" else None
         seconds = stats["fit_seconds"] + (refit["seconds"] if refit else 0.0)  # the refit is training too
         psnr = m["psnr"]
-        rows.append((
-            variant, str(m["num_gaussians"]), str(m["sh_degree"]), f"{m['model_bytes'] / 2**20:.2f}",
-            f"{m['novel_pose_fps']:.1f} ({m['novel_pose_fps'] / base['novel_pose_fps']:.2f}x)",
-            f"{seconds:.0f}", f"{peak:.0f}",
-            f"{psnr.get('novel_view', float('nan')):.2f}", f"{psnr.get('novel_pose', float('nan')):.2f}",
-            f"{base['model_bytes'] / m['model_bytes']:.2f}x",
-        ))  # fmt: skip
-    header = ("variant", "Gaussians", "SH", "model MiB", "novel-pose fps", "train s", "peak MiB", "novel-view dB",
-              "novel-pose dB", "smaller")  # fmt: skip
-    choices = "; ".join(f"{c['key']}={_short(c['value'])} ({c['measure']})" for c in result["choices"]
-                        if not c["by_hand"])  # fmt: skip
+        rows.append(
+            (
+                variant,
+                str(m["num_gaussians"]),
+                str(m["sh_degree"]),
+                f"{m['model_bytes'] / 2**20:.2f}",
+                f"{m['novel_pose_fps']:.1f} ({m['novel_pose_fps'] / base['novel_pose_fps']:.2f}x)",
+                f"{seconds:.0f}",
+                f"{peak:.0f}",
+                f"{psnr.get('novel_view', float('nan')):.2f}",
+                f"{psnr.get('novel_pose', float('nan')):.2f}",
+                f"{base['model_bytes'] / m['model_bytes']:.2f}x",
+            )
+        )
+    header = (
+        "variant",
+        "Gaussians",
+        "SH",
+        "model MiB",
+        "novel-pose fps",
+        "train s",
+        "peak MiB",
+        "novel-view dB",
+        "novel-pose dB",
+        "smaller",
+    )
+    choices = "; ".join(
+        f"{c['key']}={_short(c['value'])} ({c['measure']})" for c in result["choices"] if not c["by_hand"]
+    )
     fold, comp = result.get("corrector_fold"), result.get("compaction") or {}
     pruned = f"pruning removed {result['removed_gaussians']} Gaussians"
     if comp.get("prune_tolerance") is not None:
@@ -128,8 +175,10 @@ def scene_table(name: str, result: dict) -> str:
     if fold:
         from framework.compaction.corrector_fold import fold_outcome
 
-        pruned += (f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
-                   f"tolerance {fold['tolerance']:.4f}")  # fmt: skip
+        pruned += (
+            f"; F_a {fold_outcome(fold)}: training frames render {fold['render_rms']:.4f} RMS apart, "
+            f"tolerance {fold['tolerance']:.4f}"
+        )
     if comp.get("corrector_kept"):
         pruned += f"; F_a kept whole: {comp['corrector_kept']}"
     if comp.get("render_rms") is not None:
@@ -139,8 +188,10 @@ def scene_table(name: str, result: dict) -> str:
         )
     if comp.get("refit"):
         r = comp["refit"]
-        pruned += (f"; then the remaining Gaussians refitted for {r['steps']} steps ({r['seconds']:.0f} s, in the "
-                   f"train s of auto+pruned)")  # fmt: skip
+        pruned += (
+            f"; then the remaining Gaussians refitted for {r['steps']} steps ({r['seconds']:.0f} s, in the "
+            f"train s of auto+pruned)"
+        )
 
     return f"### {name}\n\nauto chose: {choices}\n\n{pruned}\n\n{format_table(rows, header)}\n"
 
@@ -169,8 +220,9 @@ def main() -> None:
         help="time the frames with this backend (e.g. numba); default: the one the models trained with",
     )
     args = ap.parse_args()
-    prune_options = {k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps))
-                     if v is not None}  # fmt: skip
+    prune_options = {
+        k: v for k, v in (("prune_tolerance", args.prune_tolerance), ("refit_steps", args.refit_steps)) if v is not None
+    }
     if args.smoke:
         prune_options.setdefault("refit_steps", SMOKE_REFIT_STEPS)
     extra = ([f"profile={args.profile}"] if args.profile else []) + (SMOKE if args.smoke else []) + list(args.set)
@@ -180,8 +232,12 @@ def main() -> None:
         train_stats = {v: train(scene_dir / v, [*SCENES[scene], *o, *extra]) for v, o in VARIANTS.items()}
         summary = yaml.safe_load((scene_dir / "auto" / "scene.yaml").read_text())
         measures = measure_scene(scene_dir, args.warmup, args.repeats, args.rounds, prune_options, args.rasterizer)
-        results[scene] = {"train": train_stats, "measures": measures, "choices": summary["choices"],
-                          "profile": summary["profile"]}  # fmt: skip
+        results[scene] = {
+            "train": train_stats,
+            "measures": measures,
+            "choices": summary["choices"],
+            "profile": summary["profile"],
+        }
         results[scene]["removed_gaussians"] = results[scene]["measures"].pop("removed_gaussians")
         results[scene]["corrector_fold"] = results[scene]["measures"].pop("corrector_fold")
         results[scene]["compaction"] = results[scene]["measures"].pop("compaction")
@@ -189,9 +245,13 @@ def main() -> None:
         tmp.write_text(json.dumps(results, indent=1))
         os.replace(tmp, args.out / "results.json")
     device = _device()
-    lines = [f"# scene-adaptive comparison{' (SMOKE RUN: 50 steps, numbers are not results)' if args.smoke else ''}",
-             "", f"device {device}; overrides for every training: `{' '.join(extra) or '(none)'}`; pruning: "
-             f"`{prune_options or 'framework.prune defaults'}`", ""]  # fmt: skip
+    lines = [
+        f"# scene-adaptive comparison{' (SMOKE RUN: 50 steps, numbers are not results)' if args.smoke else ''}",
+        "",
+        f"device {device}; overrides for every training: `{' '.join(extra) or '(none)'}`; pruning: "
+        f"`{prune_options or 'framework.prune defaults'}`",
+        "",
+    ]
     lines += [scene_table(scene, results[scene]) for scene in args.scenes]
     (args.out / "scene_adaptive.md").write_text("\n".join(lines))
     print("\n".join(lines))

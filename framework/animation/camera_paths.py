@@ -21,8 +21,9 @@ def subject_view(module, dm) -> tuple[torch.Tensor, float, float]:
     return center, dist, fov
 
 
-def sequence_cameras(module, dm, mode: str, num: int, camera_index: int = 0, turns: float = 1.0,
-                     resolution: int | None = None) -> list[Cameras]:  # fmt: skip
+def sequence_cameras(
+    module, dm, mode: str, num: int, camera_index: int = 0, turns: float = 1.0, resolution: int | None = None
+) -> list[Cameras]:
     """One camera per frame: `orbit` circles the subject `turns` times at the training cameras' distance and field of
     view; `fixed` is dataset camera `camera_index` for every frame. `resolution` (pixels) rescales the image size."""
     train_cams = dm.train_set.cameras

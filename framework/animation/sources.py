@@ -35,8 +35,10 @@ def load_motion(module, dm, spec: str, fps: float | None = None) -> tuple[Motion
     refinement looks them up) and are -1 for files. With `fps`, a file's motion is resampled to that frame rate."""
     body = module.avatar.body
     if body is None:
-        raise SplatrigError(f"motion={spec}: this model has no body (a static scene); render it with a split of views "
-                            f"instead of a motion.")  # fmt: skip
+        raise SplatrigError(
+            f"motion={spec}: this model has no body (a static scene); render it with a split of views "
+            f"instead of a motion."
+        )
     path = Path(spec)
     if spec in SPLITS and not path.exists():
         dataset = dm.split(spec)

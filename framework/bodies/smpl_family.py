@@ -32,10 +32,31 @@ from framework.interfaces.body import BodyModel
 from framework.rig.kinematics import skin_points
 
 SMPL_JOINT_NAMES = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle",
-    "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder",
-    "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hand", "right_hand",
-]  # fmt: skip
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
+]
 
 
 class SmplFamilyBody(BodyModel):
@@ -59,14 +80,16 @@ class SmplFamilyBody(BodyModel):
             if model_type == "smpl":
                 model = smplx.SMPL(model_path=str(path), **kwargs)
             else:
-                model = smplx.SMPLX(model_path=str(path), ext=path.suffix[1:], use_pca=False, flat_hand_mean=True,
-                                    **kwargs)  # fmt: skip
+                model = smplx.SMPLX(
+                    model_path=str(path), ext=path.suffix[1:], use_pca=False, flat_hand_mean=True, **kwargs
+                )
         n_betas = model.shapedirs.shape[-1]
         b = torch.zeros(n_betas, dtype=torch.float64)
         if betas is not None:
             if len(betas) > n_betas:
-                raise ValueError(f"{model_type} body: {len(betas)} betas given but {path.name} has {n_betas} shape "
-                                 f"components.")  # fmt: skip
+                raise ValueError(
+                    f"{model_type} body: {len(betas)} betas given but {path.name} has {n_betas} shape components."
+                )
             b[: len(betas)] = torch.as_tensor(list(betas), dtype=torch.float64)
         with torch.no_grad():
             v_shaped = model.v_template + torch.einsum("vcl,l->vc", model.shapedirs, b)  # [V, 3]

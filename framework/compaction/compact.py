@@ -71,8 +71,10 @@ def resolve_fold_tolerance(tolerance: float | str | None, run_cfg) -> tuple[floa
     scene = run_cfg.get("scene") or {}
     if scene.get("fold_corrector", True):
         return DEFAULT_FOLD_TOLERANCE, None
-    return None, ("the run's scene.fold_corrector is false (`+scene=auto` measured pose-dependent appearance)"
-                  f"; fold_tolerance={DEFAULT_FOLD_TOLERANCE:.3g} folds it anyway")  # fmt: skip
+    return None, (
+        "the run's scene.fold_corrector is false (`+scene=auto` measured pose-dependent appearance)"
+        f"; fold_tolerance={DEFAULT_FOLD_TOLERANCE:.3g} folds it anyway"
+    )
 
 
 @dataclass
@@ -112,34 +114,48 @@ class PruneReport:
 
     def summary(self) -> str:
         """The before/after table and what was removed, baked and folded, as printed by prune and export."""
-        faint = (f", {self.removed_within_tolerance} of them by the smallest mean squared blending weight per covered "
-                 f"pixel while the training frames stayed within "
-                 f"{self.prune_tolerance:.4g} RMS") if self.prune_tolerance is not None else ""  # fmt: skip
-        lines = [f"\n{self.table()}\n",
-                 f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
-                 f"< {self.min_weight:.4g}{faint}); "
-                 f"SH band RMS {[round(x, 5) for x in self.sh_band_rms]}; "
-                 f"F_dw {'baked' if self.weights_baked else 'absent'}; "
-                 f"{skin_weights_outcome(self.skin_weights_stored)}; "
-                 f"device {self.device}"]  # fmt: skip
+        faint = (
+            (
+                f", {self.removed_within_tolerance} of them by the smallest mean squared blending weight per covered "
+                f"pixel while the training frames stayed within "
+                f"{self.prune_tolerance:.4g} RMS"
+            )
+            if self.prune_tolerance is not None
+            else ""
+        )
+        lines = [
+            f"\n{self.table()}\n",
+            f"[splatrig] removed {self.removed_gaussians} Gaussians (max blending weight "
+            f"< {self.min_weight:.4g}{faint}); "
+            f"SH band RMS {[round(x, 5) for x in self.sh_band_rms]}; "
+            f"F_dw {'baked' if self.weights_baked else 'absent'}; "
+            f"{skin_weights_outcome(self.skin_weights_stored)}; "
+            f"device {self.device}",
+        ]
         if self.corrector_fold is not None:
             f = self.corrector_fold
             spread = ", ".join(f"{k} {v:.4f}" for k, v in f["spread"].items())
-            lines.append(f"[splatrig] F_a {fold_outcome(f)}: training frames render {f['render_rms']:.5f} RMS apart "
-                         f"(fold_tolerance {f['tolerance']:.4g}); "
-                         f"largest spread of its output over the training poses: {spread}")  # fmt: skip
+            lines.append(
+                f"[splatrig] F_a {fold_outcome(f)}: training frames render {f['render_rms']:.5f} RMS apart "
+                f"(fold_tolerance {f['tolerance']:.4g}); "
+                f"largest spread of its output over the training poses: {spread}"
+            )
         if self.corrector_kept:
             lines.append(f"[splatrig] F_a kept whole: {self.corrector_kept}")
         if self.render_rms is not None:
             before_refit = " before the refit" if self.refit else ""
-            lines.append(f"[splatrig] the compact model renders the checked training frames {self.render_rms:.5f} "
-                         f"RMS (over the avatar's pixels) from the original{before_refit}")  # fmt: skip
+            lines.append(
+                f"[splatrig] the compact model renders the checked training frames {self.render_rms:.5f} "
+                f"RMS (over the avatar's pixels) from the original{before_refit}"
+            )
         if self.refit:
             r = self.refit
             rounds = f" in {self.prune_rounds} rounds of pruning and refit" if self.prune_rounds > 1 else ""
-            lines.append(f"[splatrig] refit the remaining Gaussians for {r['steps']} steps{rounds} "
-                         f"({r['seconds']:.0f} s): training loss {r['loss_first']:.5f} -> {r['loss_last']:.5f}"
-                         + (f"; stopped: {r['stopped']}, parameters restored" if r["stopped"] else ""))  # fmt: skip
+            lines.append(
+                f"[splatrig] refit the remaining Gaussians for {r['steps']} steps{rounds} "
+                f"({r['seconds']:.0f} s): training loss {r['loss_first']:.5f} -> {r['loss_last']:.5f}"
+                + (f"; stopped: {r['stopped']}, parameters restored" if r["stopped"] else "")
+            )
         lines.append(f"[splatrig] compact model: {self.out}")
         return "\n".join(lines)
 
@@ -155,14 +171,26 @@ class PruneReport:
         rows = [
             ("Gaussians", str(b.num_gaussians), str(a.num_gaussians), ratio(b.num_gaussians, a.num_gaussians, True)),
             ("SH degree", str(b.sh_degree), str(a.sh_degree), ""),
-            ("model (learned) MiB", f"{b.model_bytes / 2**20:.2f}", f"{a.model_bytes / 2**20:.2f}",
-             ratio(b.model_bytes, a.model_bytes, True)),  # fmt: skip
+            (
+                "model (learned) MiB",
+                f"{b.model_bytes / 2**20:.2f}",
+                f"{a.model_bytes / 2**20:.2f}",
+                ratio(b.model_bytes, a.model_bytes, True),
+            ),
             ("checkpoint file MiB", _mib(b.file_bytes), _mib(a.file_bytes), ratio(b.file_bytes, a.file_bytes, True)),
-            (f"novel-pose fps{self._timed_with()}", _num(b.novel_pose_fps), _num(a.novel_pose_fps),
-             ratio(b.novel_pose_fps, a.novel_pose_fps)),
-            (f"novel-view fps{self._timed_with()}", _num(b.novel_view_fps), _num(a.novel_view_fps),
-             ratio(b.novel_view_fps, a.novel_view_fps)),
-        ]  # fmt: skip
+            (
+                f"novel-pose fps{self._timed_with()}",
+                _num(b.novel_pose_fps),
+                _num(a.novel_pose_fps),
+                ratio(b.novel_pose_fps, a.novel_pose_fps),
+            ),
+            (
+                f"novel-view fps{self._timed_with()}",
+                _num(b.novel_view_fps),
+                _num(a.novel_view_fps),
+                ratio(b.novel_view_fps, a.novel_view_fps),
+            ),
+        ]
         for split in b.psnr:
             pb, pa = b.psnr[split], a.psnr.get(split)
             rows.append((f"{split} PSNR dB", f"{pb:.3f}", _num(pa, 3), "-" if pa is None else f"{pa - pb:+.3f}"))
@@ -192,8 +220,14 @@ def _num(x: float | None, digits: int = 1) -> str:
 
 # ------------------------------------------------------------------------------------------------- measuring
 @torch.no_grad()
-def measure_module(module, dm, splits: tuple[str, ...] = ("novel_view", "novel_pose"), warmup: int = 3,
-                   repeats: int = 10, file_bytes: int | None = None) -> ModelMeasure:  # fmt: skip
+def measure_module(
+    module,
+    dm,
+    splits: tuple[str, ...] = ("novel_view", "novel_pose"),
+    warmup: int = 3,
+    repeats: int = 10,
+    file_bytes: int | None = None,
+) -> ModelMeasure:
     """Gaussian count, learned size, novel-pose / novel-view fps (bench_render's rules) and PSNR per split."""
     from framework.plugins import load_plugins
     from framework.registry import METRICS
@@ -254,8 +288,14 @@ def has_pose_corrector(avatar) -> bool:
     return avatar.body is not None and any(True for _ in avatar.corrector.parameters())
 
 
-def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE, max_frames: int = CHECK_FRAMES,
-                          check: RenderCheck | None = None, partial: bool = False) -> CorrectorFold | None:  # fmt: skip
+def fold_module_corrector(
+    module,
+    dm,
+    tolerance: float = DEFAULT_FOLD_TOLERANCE,
+    max_frames: int = CHECK_FRAMES,
+    check: RenderCheck | None = None,
+    partial: bool = False,
+) -> CorrectorFold | None:
     """Fold F_a into the Gaussians when the training frames render the same without it (`framework.model.
     corrector_fold`; with `partial`, as much of it as they allow); the stored config becomes `corrector=none` when
     all of it went. None when there is no pose-driven corrector."""
@@ -271,9 +311,15 @@ def fold_module_corrector(module, dm, tolerance: float = DEFAULT_FOLD_TOLERANCE,
 
 
 @torch.no_grad()
-def prune_module(module, dm, min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
-                 max_frames: int | None = None, check: RenderCheck | None = None,
-                 tolerance: float | None = None) -> tuple[int, int, list[float]]:  # fmt: skip
+def prune_module(
+    module,
+    dm,
+    min_weight: float = DEFAULT_MIN_WEIGHT,
+    sh_tolerance: float = DEFAULT_SH_TOLERANCE,
+    max_frames: int | None = None,
+    check: RenderCheck | None = None,
+    tolerance: float | None = None,
+) -> tuple[int, int, list[float]]:
     """Remove Gaussians whose blending weight never reaches `min_weight` over the training views and poses; with a
     `check` and `tolerance`, then others, the smallest mean squared blending weight per covered pixel first
     (`framework.compaction.pruning`), while the checked frames stay within it; then the SH bands whose RMS colour change
@@ -341,13 +387,24 @@ def write_compact_checkpoint(module, source: dict[str, Any], out_path: Path, ski
         torch.save(ckpt, tmp)
 
 
-def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, *,
-                     min_weight: float = DEFAULT_MIN_WEIGHT, sh_tolerance: float = DEFAULT_SH_TOLERANCE,
-                     max_frames: int | None = None, measure: bool = True, warmup: int = 3, repeats: int = 10,
-                     device: str | None = None, fold_tolerance: float | str | None = "auto",
-                     prune_tolerance: float | str | None = "auto",
-                     refit_steps: int = DEFAULT_REFIT_STEPS, rounds: int = 5,
-                     prune_rounds: int = 1, timing_rasterizer: str | None = None) -> PruneReport:  # fmt: skip
+def prune_checkpoint(
+    ckpt_path: str | Path,
+    out_path: str | Path | None = None,
+    *,
+    min_weight: float = DEFAULT_MIN_WEIGHT,
+    sh_tolerance: float = DEFAULT_SH_TOLERANCE,
+    max_frames: int | None = None,
+    measure: bool = True,
+    warmup: int = 3,
+    repeats: int = 10,
+    device: str | None = None,
+    fold_tolerance: float | str | None = "auto",
+    prune_tolerance: float | str | None = "auto",
+    refit_steps: int = DEFAULT_REFIT_STEPS,
+    rounds: int = 5,
+    prune_rounds: int = 1,
+    timing_rasterizer: str | None = None,
+) -> PruneReport:
     """Prune, bake and write `ckpt_path` as a compact checkpoint (default: `<name>.pruned.ckpt` beside it) and
     measure the model before and after (the written file is loaded back for the "after" numbers; frame rates: both
     files timed interleaved, `rounds` rounds of `repeats` frames, `framework.lightning.trained_model.interleaved_fps`).
@@ -383,14 +440,18 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
     dm = datamodule_for(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    before = measure_module(module, dm, repeats=0, file_bytes=ckpt_path.stat().st_size) \
-        if measure else _size_only(module, ckpt_path.stat().st_size)  # fmt: skip
+    before = (
+        measure_module(module, dm, repeats=0, file_bytes=ckpt_path.stat().st_size)
+        if measure
+        else _size_only(module, ckpt_path.stat().st_size)
+    )
     module.bake_weights()
     baked = bake_weight_residual(module)
     check = RenderCheck.of(module.avatar, check_batches(module, dm), module.sh_degree(module.trained_steps()))
     fold = None if fold_tolerance is None else fold_module_corrector(module, dm, fold_tolerance, check=check)
-    removed, faint, rms = prune_module(module, dm, min_weight, sh_tolerance, max_frames, check=check,
-                                       tolerance=prune_tolerance)  # on the folded model  # fmt: skip
+    removed, faint, rms = prune_module(
+        module, dm, min_weight, sh_tolerance, max_frames, check=check, tolerance=prune_tolerance
+    )  # on the folded model
     if fold is not None and not fold.folded:
         # Without a refit, pruning and the partial fold share the fold tolerance from the original renders. With one,
         # the refit repairs what both changed, so the fold gets its own budget, measured from the pruned model.
@@ -400,8 +461,9 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     refit = None
     for round_index in range(prune_rounds if refit_steps > 0 else 1):
         if round_index:  # a later round: the refitted model is the new reference, pruned within the same tolerance
-            more, more_faint = prune_again(module, dm, min_weight, max_frames, prune_tolerance, check.batches,
-                                           check.sh_degree)  # fmt: skip
+            more, more_faint = prune_again(
+                module, dm, min_weight, max_frames, prune_tolerance, check.batches, check.sh_degree
+            )
             removed, faint = removed + more, faint + more_faint
         if refit_steps > 0:
             refit = merge_refits(refit, refit_module(module, dm, refit_steps))
@@ -409,19 +471,38 @@ def prune_checkpoint(ckpt_path: str | Path, out_path: str | Path | None = None, 
     write_compact_checkpoint(module, source, out, skin_weights=skin_weights)
     has_weights = "skin_weights" in module.avatar.gaussians.params  # a static scene's Gaussians have none
     compact = load_module(out, device)
-    after = measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size) \
-        if measure else _size_only(compact, out.stat().st_size)  # fmt: skip
+    after = (
+        measure_module(compact, dm, repeats=0, file_bytes=out.stat().st_size)
+        if measure
+        else _size_only(compact, out.stat().st_size)
+    )
     if measure and repeats > 0 and rounds > 0 and timing_split(dm) is not None:  # no held-out split: no frame rates
-        fps = interleaved_fps({"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device),
-                              timing_rasterizer)  # fmt: skip
+        fps = interleaved_fps(
+            {"before": ckpt_path, "after": out}, warmup, repeats, rounds, str(device), timing_rasterizer
+        )
         before.novel_pose_fps, before.novel_view_fps = fps["before"]
         after.novel_pose_fps, after.novel_view_fps = fps["after"]
-    return PruneReport(str(ckpt_path), str(out), before, after, removed, float(min_weight), rms, float(sh_tolerance),
-                       baked, str(device), None if fold is None else asdict(fold),
-                       None if prune_tolerance is None else float(prune_tolerance), faint, render_rms,
-                       skin_weights if has_weights else None, None if refit is None else asdict(refit),
-                       corrector_kept if has_pose_corrector(compact.avatar) else None,
-                       prune_rounds if refit_steps > 0 else 1, timing_rasterizer)  # fmt: skip
+    return PruneReport(
+        str(ckpt_path),
+        str(out),
+        before,
+        after,
+        removed,
+        float(min_weight),
+        rms,
+        float(sh_tolerance),
+        baked,
+        str(device),
+        None if fold is None else asdict(fold),
+        None if prune_tolerance is None else float(prune_tolerance),
+        faint,
+        render_rms,
+        skin_weights if has_weights else None,
+        None if refit is None else asdict(refit),
+        corrector_kept if has_pose_corrector(compact.avatar) else None,
+        prune_rounds if refit_steps > 0 else 1,
+        timing_rasterizer,
+    )
 
 
 def refit_module(module, dm, steps: int) -> RefitResult:
@@ -438,22 +519,35 @@ def merge_refits(first: RefitResult | None, then: RefitResult) -> RefitResult:
     """One report for refits run one after the other: steps and seconds add up, the losses span them all."""
     if first is None:
         return then
-    return RefitResult(first.steps + then.steps, first.seconds + then.seconds, first.loss_first, then.loss_last,
-                       first.stopped or then.stopped)  # fmt: skip
+    return RefitResult(
+        first.steps + then.steps,
+        first.seconds + then.seconds,
+        first.loss_first,
+        then.loss_last,
+        first.stopped or then.stopped,
+    )
 
 
 @torch.no_grad()
-def prune_again(module, dm, min_weight: float, max_frames: int | None, tolerance: float | None, batches,
-                sh_degree: int) -> tuple[int, int]:  # fmt: skip
+def prune_again(
+    module, dm, min_weight: float, max_frames: int | None, tolerance: float | None, batches, sh_degree: int
+) -> tuple[int, int]:
     """Another pruning round after a refit (`prune_rounds`): the same thresholds, measured from the refitted model's
     own renders, since the refit moved the Gaussians the last round's reference was drawn with. Returns (Gaussians
     removed, of them within the tolerance)."""
     check = RenderCheck.of(module.avatar, batches, sh_degree)
-    removed, faint, _ = prune_module(module, dm, min_weight, sh_tolerance=0.0, max_frames=max_frames, check=check,
-                                     tolerance=tolerance)  # SH bands were settled in the first round  # fmt: skip
+    removed, faint, _ = prune_module(
+        module, dm, min_weight, sh_tolerance=0.0, max_frames=max_frames, check=check, tolerance=tolerance
+    )  # SH bands were settled in the first round
     return removed, faint
 
 
 def _size_only(module, file_bytes: int) -> ModelMeasure:
-    return ModelMeasure(module.avatar.gaussians.num, module.sh_degree(module.trained_steps()), model_bytes(module),
-                        file_bytes, None, None)  # fmt: skip
+    return ModelMeasure(
+        module.avatar.gaussians.num,
+        module.sh_degree(module.trained_steps()),
+        model_bytes(module),
+        file_bytes,
+        None,
+        None,
+    )

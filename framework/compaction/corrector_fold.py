@@ -87,17 +87,27 @@ def _deviation(a: dict[str, Tensor], b: dict[str, Tensor]) -> dict[str, Tensor]:
 
 def _write_mean(p, mean: dict[str, Tensor], kept: dict[str, Tensor], rows: Tensor | None) -> None:
     """Parameters = the kept ones, with the mean correction written into `rows` (None: every row)."""
-    new = {"opacity_logits": mean["opacity"], "log_scales": mean["log_scales"], "quats": mean["quats"],
-           "sh0": mean["sh"][:, :1], "shN": mean["sh"][:, 1:]}  # fmt: skip
+    new = {
+        "opacity_logits": mean["opacity"],
+        "log_scales": mean["log_scales"],
+        "quats": mean["quats"],
+        "sh0": mean["sh"][:, :1],
+        "shN": mean["sh"][:, 1:],
+    }
     for k in _KEYS:
         value = new[k] if rows is None else kept[k].index_copy(0, rows, new[k].index_select(0, rows))
         p[k].data.copy_(value)
 
 
 @torch.no_grad()
-def fold_corrector(avatar: Avatar, batches: Sequence[FrameBatch], sh_degree: int,
-                   tolerance: float = DEFAULT_FOLD_TOLERANCE, check: RenderCheck | None = None,
-                   partial: bool = False) -> CorrectorFold:  # fmt: skip
+def fold_corrector(
+    avatar: Avatar,
+    batches: Sequence[FrameBatch],
+    sh_degree: int,
+    tolerance: float = DEFAULT_FOLD_TOLERANCE,
+    check: RenderCheck | None = None,
+    partial: bool = False,
+) -> CorrectorFold:
     """Fold the corrector into the Gaussians when the frames render within `tolerance` (RMS colour) of `check`'s
     reference (default: the avatar's own renders of `batches` now): the mean corrected Gaussians replace the canonical
     ones, the corrector becomes `none` and the latent codes go. Otherwise, with `partial`, fold the largest share of

@@ -63,9 +63,15 @@ def contributions(avatar: Avatar, batches: Iterable[FrameBatch], rasterizer: Ras
     total = BlendWeights.zeros(avatar.gaussians.num, avatar.gaussians.params["means"].device)
     for batch in batches:
         _, posed, _ = avatar.pose(batch)
-        total = total.add(raster.blend_weights(
-            posed.means, posed.quats, torch.exp(posed.log_scales), torch.sigmoid(posed.opacity_logits), batch.cameras
-        ))  # fmt: skip
+        total = total.add(
+            raster.blend_weights(
+                posed.means,
+                posed.quats,
+                torch.exp(posed.log_scales),
+                torch.sigmoid(posed.opacity_logits),
+                batch.cameras,
+            )
+        )
     avatar.train(was_training)
     return total
 
@@ -85,8 +91,9 @@ def prune_gaussians(params: GaussianParams, keep: Tensor, corrector: Corrector |
 
 
 @torch.no_grad()
-def prune_within_tolerance(avatar: Avatar, check: RenderCheck, scores: Tensor, tolerance: float,
-                           max_fraction: float = 0.9, steps: int = 64) -> int:  # fmt: skip
+def prune_within_tolerance(
+    avatar: Avatar, check: RenderCheck, scores: Tensor, tolerance: float, max_fraction: float = 0.9, steps: int = 64
+) -> int:
     """Remove the Gaussians with the smallest `scores` [N] (compaction: `BlendWeights.mean_square`; the largest
     blending weight works too), as many as keep `check`'s frames within `tolerance` RMS colour of its reference, at
     most `max_fraction` of them. Bisection over the count (to N / `steps`); a trial hides Gaussians

@@ -46,9 +46,16 @@ def _joint_region(name: str) -> int:
 class Appearance:
     """Per-body appearance: garment regions per face and the albedo / wrinkle functions."""
 
-    def __init__(self, rest_vertices: np.ndarray, faces: np.ndarray, skin_weights: np.ndarray, rig: Rig,
-                 seed: int = 0, wrinkle_strength: float = 0.55,
-                 broad_strength: float = BROAD_STRENGTH) -> None:  # fmt: skip
+    def __init__(
+        self,
+        rest_vertices: np.ndarray,
+        faces: np.ndarray,
+        skin_weights: np.ndarray,
+        rig: Rig,
+        seed: int = 0,
+        wrinkle_strength: float = 0.55,
+        broad_strength: float = BROAD_STRENGTH,
+    ) -> None:
         self.rest = np.asarray(rest_vertices, dtype=np.float64)  # [V, 3]
         self.faces = np.asarray(faces, dtype=np.int64)  # [F, 3]
         W = np.asarray(skin_weights, dtype=np.float64)  # [V, J]

@@ -130,8 +130,9 @@ class CheckReport:
         lines.append("")
         if self.frame_iou:
             worst = sorted(self.frame_iou.items(), key=lambda kv: kv[1])[:3]
-            lines.append("Lowest frame IoU (good cameras): " + ", ".join(f"frame {frame_names(f)} {v:.3f}"
-                                                                          for f, v in worst))  # fmt: skip
+            lines.append(
+                "Lowest frame IoU (good cameras): " + ", ".join(f"frame {frame_names(f)} {v:.3f}" for f, v in worst)
+            )
             lines.append("")
         if self.findings:
             lines.append("Problems found:")
@@ -217,12 +218,20 @@ def diagnose(
             fixes[c] = f"{best} (IoU {rows[c].iou:.2f} -> {best_iou:.2f} when corrected)"
     unit_cams: list[int] = []
     for marker, verdict, how in (
-        (TOO_LARGE, "T in millimetres", "T is in millimetres where metres are expected ({n} of {C} cameras, {d:.0f} "
-         "units from the subject; a studio is a few metres across): divide every T by 1000 (EasyMocap's extri.yml "
-         "stores metres)"),
-        (TOO_SMALL, "T in metres", "T is in metres where millimetres are expected ({n} of {C} cameras, {d:.4f} units "
-         "from the subject): multiply every T by 1000 (ZJU-MoCap's annots.npy stores millimetres)"),
-    ):  # fmt: skip
+        (
+            TOO_LARGE,
+            "T in millimetres",
+            "T is in millimetres where metres are expected ({n} of {C} cameras, {d:.0f} "
+            "units from the subject; a studio is a few metres across): divide every T by 1000 (EasyMocap's extri.yml "
+            "stores metres)",
+        ),
+        (
+            TOO_SMALL,
+            "T in metres",
+            "T is in metres where millimetres are expected ({n} of {C} cameras, {d:.4f} units "
+            "from the subject): multiply every T by 1000 (ZJU-MoCap's annots.npy stores millimetres)",
+        ),
+    ):
         cams = [c for c, f in fixes.items() if f.startswith(marker)]
         if cams and len(cams) >= max(2, len(bad) // 2):  # the whole rig in the wrong unit: say it once
             findings.append(how.format(n=len(cams), C=C, d=distance))
@@ -270,8 +279,11 @@ def diagnose(
     for c in bad:
         if rows[c].verdict == "ok":
             r = rows[c]
-            why = ("its masks are much larger than the body (segmentation keeps background?)" if r.inside >= min_inside
-                   else "no simple mistake explains it (check K and dist, or re-calibrate this camera)")  # fmt: skip
+            why = (
+                "its masks are much larger than the body (segmentation keeps background?)"
+                if r.inside >= min_inside
+                else "no simple mistake explains it (check K and dist, or re-calibrate this camera)"
+            )
             findings.append(f"camera {r.name}: mask IoU {r.iou:.2f}, {r.inside:.0%} of vertices inside: {why}")
             r.verdict = "BAD"
     for c in low:
@@ -294,8 +306,9 @@ def diagnose(
         )
     outliers = [(c, f) for c in good for f in frames if f not in bad_frames and not scores[c, f][1] >= min_iou]
     if outliers:
-        listed = ", ".join(f"camera {rig.names[c]} frame {frame_name(f)} (IoU {scores[c, f][1]:.2f})"
-                           for c, f in outliers[:8])  # fmt: skip
+        listed = ", ".join(
+            f"camera {rig.names[c]} frame {frame_name(f)} (IoU {scores[c, f][1]:.2f})" for c, f in outliers[:8]
+        )
         findings.append(
             f"{len(outliers)} single image(s) disagree while the same frame fits the other cameras: {listed}; a "
             f"bad mask, or a camera that is not synchronised"

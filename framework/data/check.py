@@ -88,8 +88,10 @@ def run(cfg: DictConfig) -> int:
         raise SplatrigError(f"{exc.full_key} is not set: pass {exc.full_key}=/path/to/your/capture") from None
     ds = build_split(data, "train")
     if not isinstance(ds, SequenceDataset):
-        raise SplatrigError(f"data={data['name']}: the check reads calibrated captures (easymocap, zju_mocap, "
-                            f"synthetic_studio); '{data['name']}' is not one")  # fmt: skip
+        raise SplatrigError(
+            f"data={data['name']}: the check reads calibrated captures (easymocap, zju_mocap, "
+            f"synthetic_studio); '{data['name']}' is not one"
+        )
     body = None
     if body_node.get("name"):
         betas = ds.fitted_betas().tolist()
@@ -115,12 +117,20 @@ def run(cfg: DictConfig) -> int:
     def frame_name(f: int) -> str:
         return stems[f] if stems is not None else str(f)
 
-    rig = Rig(ds.cameras.K.double().numpy(), ds.cameras.world_to_cam.double().numpy(), list(ds.seq.camera_names),
-              ds.height, ds.width)  # fmt: skip
+    rig = Rig(
+        ds.cameras.K.double().numpy(),
+        ds.cameras.world_to_cam.double().numpy(),
+        list(ds.seq.camera_names),
+        ds.height,
+        ds.width,
+    )
     C = len(rig.names)
     source = getattr(ds, "mask_source", None) or ds.mask_dir
-    print(f"[splatrig] check {ds.root}: {len(frames)} frame(s) x {C} camera(s) at {ds.width}x{ds.height}, masks from "
-          f"{source}, body from {what}", file=sys.stderr)  # fmt: skip
+    print(
+        f"[splatrig] check {ds.root}: {len(frames)} frame(s) x {C} camera(s) at {ds.width}x{ds.height}, masks from "
+        f"{source}, body from {what}",
+        file=sys.stderr,
+    )
     scores: dict[tuple[int, int], tuple[float, float]] = {}
     for f, c in tqdm([(f, c) for f in frames for c in range(C)], desc="check", unit="image"):
         inside, iou, _ = score(geometry(f), mask(c, f), rig.K[c], rig.w2c[c])

@@ -44,16 +44,24 @@ def easymocap_to_zju(
     """Convert; `frames` is a frame_range spec over the capture's frames ([start, end, step] or a list)."""
     from tqdm import tqdm
 
-    seq = EasyMocapSequence(root, cameras=cameras, mask_dir=mask_dir, params_dir=params_dir, person_id=person_id,
-                            smplx_model_path=smplx_model_path, smplx_gender=gender)  # fmt: skip
+    seq = EasyMocapSequence(
+        root,
+        cameras=cameras,
+        mask_dir=mask_dir,
+        params_dir=params_dir,
+        person_id=person_id,
+        smplx_model_path=smplx_model_path,
+        smplx_gender=gender,
+    )
     out = Path(out)
     if (out / ANNOTS).exists() and not force:
         raise SplatrigError(f"{out / ANNOTS} exists: {out} already holds a sequence; pick another OUT or pass --force")
     selected = frame_range(frames, seq.num_frames, "frames")
     exts = {seq.image_path(f, v).suffix.lower() for f in selected[:1] for v in range(seq.num_views)}
     if len(exts) != 1:
-        raise SplatrigError(f"{seq.root}: cameras store frames in different formats {sorted(exts)}; convert them to "
-                            f"one format first")  # fmt: skip
+        raise SplatrigError(
+            f"{seq.root}: cameras store frames in different formats {sorted(exts)}; convert them to one format first"
+        )
     writer = ZjuWriter(out, seq.camera_names, image_ext=exts.pop())
     cams = seq.cameras
     writer.write_cameras(cams.K, cams.D, cams.R, cams.T_m, k_convention="opencv")
@@ -88,9 +96,18 @@ def main(argv: list[str] | None = None) -> int:
     em.add_argument("--force", action="store_true", help="overwrite an existing sequence in OUT")
     a = ap.parse_args(argv)
     with reported_as_message():
-        out = easymocap_to_zju(a.root, a.out, cameras=a.cameras, frames=a.frames, mask_dir=a.mask_dir,
-                               params_dir=a.params_dir, person_id=a.person_id, smplx_model_path=a.smplx_model,
-                               gender=a.gender, force=a.force)  # fmt: skip
+        out = easymocap_to_zju(
+            a.root,
+            a.out,
+            cameras=a.cameras,
+            frames=a.frames,
+            mask_dir=a.mask_dir,
+            params_dir=a.params_dir,
+            person_id=a.person_id,
+            smplx_model_path=a.smplx_model,
+            gender=a.gender,
+            force=a.force,
+        )
     print(f"wrote {out} (read it with data=zju_mocap data.protocol=null data.root={out})")
     return 0
 

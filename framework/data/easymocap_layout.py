@@ -132,8 +132,9 @@ def read_easymocap_cameras(root: Path) -> tuple[list[str], ZjuCameras, list[tupl
             r = _rotation(rvec, rot, name, paths[EXTRI])
             for what, arr in (("K", k), ("dist", d), ("R", r), ("T", t)):
                 if not np.isfinite(arr).all():
-                    raise EasyMocapError(f"{paths[INTRI if what in ('K', 'dist') else EXTRI]}: {what}_{name} has "
-                                         f"non-finite values")  # fmt: skip
+                    raise EasyMocapError(
+                        f"{paths[INTRI if what in ('K', 'dist') else EXTRI]}: {what}_{name} has non-finite values"
+                    )
             K.append(k), D.append(d), R.append(r), T.append(t.ravel())
             h, w = fs_in.getNode(f"H_{name}"), fs_in.getNode(f"W_{name}")
             sizes.append(None if h.empty() or w.empty() else (int(w.real()), int(h.real())))
@@ -300,8 +301,11 @@ class EasyMocapSequence:
                 )
         if any(len(f) != n for f in per_cam):
             counts = {name: len(f) for name, f in zip(self.camera_names, per_cam, strict=True) if len(f) != n}
-            print(f"[splatrig] easymocap: using the first {n} frames of every camera, as EasyMocap does ({counts} "
-                  f"hold more)", file=sys.stderr)  # fmt: skip
+            print(
+                f"[splatrig] easymocap: using the first {n} frames of every camera, as EasyMocap does ({counts} "
+                f"hold more)",
+                file=sys.stderr,
+            )
         return [files[:n] for files in per_cam]
 
     def _fit_names(self) -> list[str]:
@@ -341,8 +345,9 @@ class EasyMocapSequence:
             if not path.is_dir():
                 raise EasyMocapFileMissing(f"{path} does not exist (data.params_dir='{params_dir}')")
             return path
-        found = sorted({p.parent for pattern in ("output*/smpl/*.json", "output*/*/smpl/*.json")
-                        for p in self.root.glob(pattern)})  # fmt: skip
+        found = sorted(
+            {p.parent for pattern in ("output*/smpl/*.json", "output*/*/smpl/*.json") for p in self.root.glob(pattern)}
+        )
         if not found:
             raise EasyMocapFileMissing(
                 f"{self.root}: no SMPL parameters: expected output*/smpl/NNNNNN.json (EasyMocap's apps/demo/mv1p.py "
@@ -432,8 +437,9 @@ class EasyMocapSequence:
         for d in people:
             if d.get("id") == self.person_id:
                 return d
-        raise EasyMocapError(f"{path}: no person with id {self.person_id} (data.person_id) in this {kind} file; "
-                             f"ids here: {ids}")  # fmt: skip
+        raise EasyMocapError(
+            f"{path}: no person with id {self.person_id} (data.person_id) in this {kind} file; ids here: {ids}"
+        )
 
     def params(self, frame: int) -> dict:
         """poses [1, J*3] (SMPL-X hand PCA expanded), Rh [1, 3], Th [1, 3], shapes [1, S], expression, body."""
@@ -441,8 +447,9 @@ class EasyMocapSequence:
         p = self._person(path, "parameter")
         missing = [k for k in ("Rh", "Th", "poses") if k not in p]
         if missing:
-            raise EasyMocapError(f"{path}: expected keys Rh, Th, poses (and shapes), missing {missing}; found "
-                                 f"{sorted(p)}")  # fmt: skip
+            raise EasyMocapError(
+                f"{path}: expected keys Rh, Th, poses (and shapes), missing {missing}; found {sorted(p)}"
+            )
         out = {k: np.asarray(p[k], dtype=np.float32).reshape(1, -1) for k in ("Rh", "Th", "poses")}
         out["shapes"] = np.asarray(p.get("shapes", np.zeros(10)), dtype=np.float32).reshape(1, -1)
         if "expression" in p:

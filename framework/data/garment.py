@@ -110,8 +110,9 @@ def lagged_transforms(M: np.ndarray, lag: float) -> np.ndarray:
     return S
 
 
-def pendulum_tilts(waist: np.ndarray, stiffness: float = 0.15, damping: float = 0.25, gain: float = 8.0,
-                   limit: float = 0.6) -> np.ndarray:  # fmt: skip
+def pendulum_tilts(
+    waist: np.ndarray, stiffness: float = 0.15, damping: float = 0.25, gain: float = 8.0, limit: float = 0.6
+) -> np.ndarray:
     """Waist centre positions [F, 3] (world) -> hem tilts [F, 3] (axis-angle about horizontal axes, |phi| <= limit)."""
     F = len(waist)
     acc = np.zeros((F, 3))

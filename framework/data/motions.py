@@ -53,11 +53,21 @@ SEMANTIC: dict[str, tuple[str, ...]] = {
     "wrist.R": ("wrist.R", "hand.R", "right_wrist"),
 }  # the names of Anny, the procedural body and SMPL, in that order
 CHILD = {
-    "hip.L": "knee.L", "knee.L": "ankle.L", "hip.R": "knee.R", "knee.R": "ankle.R",
-    "shoulder.L": "elbow.L", "elbow.L": "wrist.L", "shoulder.R": "elbow.R", "elbow.R": "wrist.R",
-    "clavicle.L": "shoulder.L", "clavicle.R": "shoulder.R",
-    "spine": "neck", "chest": "neck", "neck": "head", "pelvis": "neck",
-}  # fmt: skip
+    "hip.L": "knee.L",
+    "knee.L": "ankle.L",
+    "hip.R": "knee.R",
+    "knee.R": "ankle.R",
+    "shoulder.L": "elbow.L",
+    "elbow.L": "wrist.L",
+    "shoulder.R": "elbow.R",
+    "elbow.R": "wrist.R",
+    "clavicle.L": "shoulder.L",
+    "clavicle.R": "shoulder.R",
+    "spine": "neck",
+    "chest": "neck",
+    "neck": "head",
+    "pelvis": "neck",
+}
 #: joints whose flexion angle drives wrinkle shading (framework.data.appearance)
 FLEX_JOINTS = ("elbow.L", "elbow.R", "knee.L", "knee.R", "hip.L", "hip.R", "shoulder.L", "shoulder.R")
 
@@ -109,8 +119,11 @@ class Rig:
                 if c in names:
                     self.index[sem] = names.index(c)
                     break
-        missing = [s for s in ("pelvis", "hip.L", "knee.L", "hip.R", "knee.R", "shoulder.L", "shoulder.R")
-                   if s not in self.index]  # fmt: skip
+        missing = [
+            s
+            for s in ("pelvis", "hip.L", "knee.L", "hip.R", "knee.R", "shoulder.L", "shoulder.R")
+            if s not in self.index
+        ]
         if missing:
             raise ValueError(
                 f"motions: the body's joints {names[:8]}... lack the semantic joints {missing}; add their names to "
@@ -174,23 +187,50 @@ def arm_raises(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarr
     a = amp
     keys = [
         (0.0, {}),
-        (0.25, {"shoulder.L": (UP, 1.1 * a), "shoulder.R": (UP, 1.1 * a), "elbow.L": (UP, 0.5 * a),
-                "elbow.R": (UP, 0.5 * a)}),
-        (0.5, {"shoulder.L": (FWD, 1.0 * a), "shoulder.R": (FWD, 1.0 * a), "elbow.L": (UP, 1.4 * a),
-               "elbow.R": (UP, 1.4 * a)}),
+        (
+            0.25,
+            {
+                "shoulder.L": (UP, 1.1 * a),
+                "shoulder.R": (UP, 1.1 * a),
+                "elbow.L": (UP, 0.5 * a),
+                "elbow.R": (UP, 0.5 * a),
+            },
+        ),
+        (
+            0.5,
+            {
+                "shoulder.L": (FWD, 1.0 * a),
+                "shoulder.R": (FWD, 1.0 * a),
+                "elbow.L": (UP, 1.4 * a),
+                "elbow.R": (UP, 1.4 * a),
+            },
+        ),
         (0.75, {"shoulder.L": (UP, 0.6 * a), "shoulder.R": (FWD, 1.2 * a), "elbow.L": (FWD, 1.2 * a)}),
         (1.0, {}),
-    ]  # fmt: skip
+    ]
     return _keyed_clip(rig, keys, n)
 
 
 def squats(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Two squats with the arms forward for balance (feet stay on the floor: the studio grounds every frame)."""
-    down = {"hip.L": (FWD, 1.2 * amp), "hip.R": (FWD, 1.2 * amp), "knee.L": (BACK, 1.9 * amp),
-            "knee.R": (BACK, 1.9 * amp), "ankle.L": (FWD, -0.5 * amp), "ankle.R": (FWD, -0.5 * amp),
-            "spine": (FWD, 0.35 * amp), "shoulder.L": (FWD, 1.2), "shoulder.R": (FWD, 1.2)}  # fmt: skip
-    keys = [(0.0, {}), (0.25, down), (0.5, {"shoulder.L": (FWD, 0.5), "shoulder.R": (FWD, 0.5)}), (0.75, down),
-            (1.0, {})]  # fmt: skip
+    down = {
+        "hip.L": (FWD, 1.2 * amp),
+        "hip.R": (FWD, 1.2 * amp),
+        "knee.L": (BACK, 1.9 * amp),
+        "knee.R": (BACK, 1.9 * amp),
+        "ankle.L": (FWD, -0.5 * amp),
+        "ankle.R": (FWD, -0.5 * amp),
+        "spine": (FWD, 0.35 * amp),
+        "shoulder.L": (FWD, 1.2),
+        "shoulder.R": (FWD, 1.2),
+    }
+    keys = [
+        (0.0, {}),
+        (0.25, down),
+        (0.5, {"shoulder.L": (FWD, 0.5), "shoulder.R": (FWD, 0.5)}),
+        (0.75, down),
+        (1.0, {}),
+    ]
     return _keyed_clip(rig, keys, n)
 
 
@@ -199,14 +239,15 @@ def kicks(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     keys = [
         (0.0, {}),
         (0.15, {"hip.L": (FWD, 0.6 * amp), "knee.L": (BACK, 1.5 * amp), "shoulder.R": (FWD, 0.5)}),
-        (0.3, {"hip.L": (FWD, 1.3 * amp), "knee.L": (BACK, 0.2 * amp), "shoulder.R": (FWD, 0.7),
-               "elbow.R": (UP, 1.0)}),
+        (0.3, {"hip.L": (FWD, 1.3 * amp), "knee.L": (BACK, 0.2 * amp), "shoulder.R": (FWD, 0.7), "elbow.R": (UP, 1.0)}),
         (0.5, {}),
-        (0.7, {"hip.R": (RIGHT, 0.9 * amp), "knee.R": (BACK, 0.4 * amp), "spine": (LEFT, 0.25),
-               "shoulder.L": (UP, 0.5)}),
+        (
+            0.7,
+            {"hip.R": (RIGHT, 0.9 * amp), "knee.R": (BACK, 0.4 * amp), "spine": (LEFT, 0.25), "shoulder.L": (UP, 0.5)},
+        ),
         (0.85, {"hip.R": (RIGHT, 0.4 * amp), "knee.R": (BACK, 1.0 * amp)}),
         (1.0, {}),
-    ]  # fmt: skip
+    ]
     return _keyed_clip(rig, keys, n)
 
 
@@ -220,12 +261,25 @@ def turn_and_reach(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.n
     keys = [
         (0.0, {}),
         (0.3, {"shoulder.R": (UP, 1.2 * amp), "elbow.R": (UP, 1.0), "knee.L": (BACK, 0.9), "hip.L": (FWD, 0.5)}),
-        (0.6, {"spine": (FWD, 0.3 * amp), "shoulder.L": (FWD, 0.9), "shoulder.R": (FWD, 0.9),
-               "elbow.L": (UP, 1.3 * amp), "elbow.R": (UP, 1.3 * amp), "knee.L": (BACK, 1.0), "knee.R": (BACK, 1.0),
-               "hip.L": (FWD, 0.6), "hip.R": (FWD, 0.6), "ankle.L": (FWD, -0.25), "ankle.R": (FWD, -0.25)}),
+        (
+            0.6,
+            {
+                "spine": (FWD, 0.3 * amp),
+                "shoulder.L": (FWD, 0.9),
+                "shoulder.R": (FWD, 0.9),
+                "elbow.L": (UP, 1.3 * amp),
+                "elbow.R": (UP, 1.3 * amp),
+                "knee.L": (BACK, 1.0),
+                "knee.R": (BACK, 1.0),
+                "hip.L": (FWD, 0.6),
+                "hip.R": (FWD, 0.6),
+                "ankle.L": (FWD, -0.25),
+                "ankle.R": (FWD, -0.25),
+            },
+        ),
         (0.85, {"shoulder.L": (UP, 0.9), "elbow.L": (UP, 0.8), "hip.R": (FWD, 0.7), "knee.R": (BACK, 1.2)}),
         (1.0, {}),
-    ]  # fmt: skip
+    ]
     return _keyed_clip(rig, keys, n)
 
 
@@ -239,7 +293,7 @@ def idle(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         (0.6, {"head": (FWD, 0.05 * a), "shoulder.R": (FWD, 0.14 * a), "shoulder.L": (FWD, 0.04 * a)}),
         (0.85, {"head": (FWD, 0.1 * a), "shoulder.L": (FWD, 0.08 * a), "shoulder.R": (FWD, 0.06 * a)}),
         (1.0, {}),
-    ]  # fmt: skip
+    ]
     return _keyed_clip(rig, keys, n)
 
 
@@ -251,7 +305,7 @@ def idle_shift(rig: Rig, n: int, amp: float = 1.0) -> tuple[np.ndarray, np.ndarr
         (0.4, {"head": (FWD, 0.08 * a), "shoulder.L": (FWD, 0.1 * a), "shoulder.R": (FWD, 0.1 * a)}),
         (0.8, {"head": (FWD, 0.12 * a), "shoulder.R": (FWD, 0.05 * a)}),
         (1.0, {}),
-    ]  # fmt: skip
+    ]
     return _keyed_clip(rig, keys, n)
 
 
@@ -306,8 +360,16 @@ def walk_cycle(rig: Rig, n: int, cycles: float = 2.0, stride: float = 0.5) -> tu
     period = max(int(f) for bone in anim.values() for f in bone)  # 40
     m = max(2, int(round(n / cycles)))  # frames per cycle
     poses = np.zeros((m, rig.num_joints, 3))
-    fold = {"spine01": "chest", "spine02": "chest", "spine03": "spine", "spine04": "spine", "spine05": "spine",
-            "neck01": "neck", "head": "head", "root": "pelvis"}  # fmt: skip
+    fold = {
+        "spine01": "chest",
+        "spine02": "chest",
+        "spine03": "spine",
+        "spine04": "spine",
+        "spine05": "spine",
+        "neck01": "neck",
+        "head": "head",
+        "root": "pelvis",
+    }
     for bone, keys in anim.items():
         if bone.endswith("_ik") or bone not in rigdef:
             continue
@@ -317,8 +379,9 @@ def walk_cycle(rig: Rig, n: int, cycles: float = 2.0, stride: float = 0.5) -> tu
         from scipy.spatial.transform import Rotation
 
         b = rigdef[bone]
-        B = _blender_bone_matrix(np.array(b["head"]["default_position"]), np.array(b["tail"]["default_position"]),
-                                 float(b["roll"]))  # fmt: skip
+        B = _blender_bone_matrix(
+            np.array(b["head"]["default_position"]), np.array(b["tail"]["default_position"]), float(b["roll"])
+        )
         L = Rotation.from_euler("xyz", eul).as_matrix()  # [m, 3, 3], Blender XYZ: Rz Ry Rx
         aa = matrix_to_axis_angle(B @ L @ B.T)  # world-aligned
         if bone in rig.joint_names:
@@ -368,8 +431,15 @@ DEFAULT_PROGRAM: tuple[tuple[str, float, str], ...] = (
     ("kicks", 0.15, "train"),
     ("turn_and_reach", 0.20, "novel_pose"),
 )
-MOTIONS = {"walk": walk_cycle, "arm_raises": arm_raises, "squats": squats, "kicks": kicks,
-           "turn_and_reach": turn_and_reach, "idle": idle, "idle_shift": idle_shift}  # fmt: skip
+MOTIONS = {
+    "walk": walk_cycle,
+    "arm_raises": arm_raises,
+    "squats": squats,
+    "kicks": kicks,
+    "turn_and_reach": turn_and_reach,
+    "idle": idle,
+    "idle_shift": idle_shift,
+}
 #: named programs (`StudioSettings.motion`): the default capture, a near-static one, and one where only the arms move
 PROGRAMS: dict[str, tuple[tuple[str, float, str], ...]] = {
     "default": DEFAULT_PROGRAM,

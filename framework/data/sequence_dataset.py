@@ -100,8 +100,10 @@ def check_files(seq: MultiViewSequence, frames: list[int], views: list[int], mas
             with Image.open(path) as im:
                 wh = im.size
         except (UnidentifiedImageError, OSError) as exc:
-            raise ZjuFormatError(f"{what} {path} (frame {frame}, view {view}) cannot be read as an image "
-                                 f"({type(exc).__name__}); export it again") from None  # fmt: skip
+            raise ZjuFormatError(
+                f"{what} {path} (frame {frame}, view {view}) cannot be read as an image "
+                f"({type(exc).__name__}); export it again"
+            ) from None
         check_complete(path, what)
         return wh
 
@@ -211,8 +213,11 @@ class SequenceDataset(MultiViewDataset):
         complement = [v for v in views_all if v not in self.train_views]
         self.test_views = list(test_views) if test_views is not None else (complement or [0])
         self.novel_pose_views = list(novel_pose_views) if novel_pose_views is not None else self.test_views
-        for what, vs in (("train_views", self.train_views), ("test_views", self.test_views),
-                         ("novel_pose_views", self.novel_pose_views)):  # fmt: skip
+        for what, vs in (
+            ("train_views", self.train_views),
+            ("test_views", self.test_views),
+            ("novel_pose_views", self.novel_pose_views),
+        ):
             bad = [v for v in vs if not 0 <= int(v) < C]
             if bad or not vs:
                 raise ValueError(f"{name}: {what}={vs} must be non-empty view indices in 0..{C - 1} ({self.root})")
@@ -315,8 +320,12 @@ class SequenceDataset(MultiViewDataset):
                 len(missing),
                 missing[0],
             )
-        zeros = (np.zeros((J, 3), np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32),
-                 np.zeros(S, np.float32))  # fmt: skip
+        zeros = (
+            np.zeros((J, 3), np.float32),
+            np.zeros(3, np.float32),
+            np.zeros(3, np.float32),
+            np.zeros(S, np.float32),
+        )
         for f in missing:
             poses[f], rh[f], th[f], shapes[f] = zeros
         self._poses = torch.tensor(np.stack(poses))  # [F, J, 3]

@@ -109,9 +109,17 @@ def build_scene(seed: int) -> SceneMesh:
         part.append(np.full(len(m.faces), i, np.int64))
         offset += len(m.vertices)
     palette = np.array(
-        [[0.85, 0.25, 0.2], [0.95, 0.8, 0.3], [0.2, 0.45, 0.85], [0.25, 0.7, 0.35], [0.9, 0.55, 0.75],
-         [0.95, 0.95, 0.9], [0.3, 0.25, 0.55], [0.1, 0.6, 0.65]]
-    )  # fmt: skip
+        [
+            [0.85, 0.25, 0.2],
+            [0.95, 0.8, 0.3],
+            [0.2, 0.45, 0.85],
+            [0.25, 0.7, 0.35],
+            [0.9, 0.55, 0.75],
+            [0.95, 0.95, 0.9],
+            [0.3, 0.25, 0.55],
+            [0.1, 0.6, 0.65],
+        ]
+    )
     colors = np.stack([palette[rng.choice(len(palette), 2, replace=False)] for _ in parts])  # [P, 2, 3]
     return SceneMesh(
         np.concatenate(verts), np.concatenate(faces), np.concatenate(normals), np.concatenate(part), colors
@@ -153,9 +161,15 @@ def render_scene(settings: StaticSceneSettings, out_dir: Path) -> None:
     (out_dir / "masks").mkdir(parents=True, exist_ok=True)
     for i, cam in enumerate(cams):
         res = raycast.render(
-            scene.vertices, scene.faces, cam, color_fn=scene.color_fn, shading=shading, normals=scene.normals,
-            supersample=settings.supersample, caster=caster,
-        )  # fmt: skip
+            scene.vertices,
+            scene.faces,
+            cam,
+            color_fn=scene.color_fn,
+            shading=shading,
+            normals=scene.normals,
+            supersample=settings.supersample,
+            caster=caster,
+        )
         Image.fromarray(res.rgb).save(out_dir / "images" / f"{i:03d}.png")
         Image.fromarray((res.mask * 255).astype(np.uint8)).save(out_dir / "masks" / f"{i:03d}.png")
     lo, hi = scene.vertices.min(0), scene.vertices.max(0)

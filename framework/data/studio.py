@@ -52,8 +52,14 @@ from framework.data.garment import skirt_albedo
 STUDIO_VERSION = 2
 LIGHT = raycast.Shading(direction=(0.45, -0.55, 0.7), ambient=0.32, diffuse=0.78, shadows=True)
 GARMENTS = ("none", "skirt")
-IMPERFECTION_DEFAULTS = {"pose_noise_deg": 0.0, "root_noise_m": 0.0, "mask_error_px": 0.0, "garment": "none",
-                         "garment_lag": 0.5, "subject_height_fraction": None}  # fmt: skip
+IMPERFECTION_DEFAULTS = {
+    "pose_noise_deg": 0.0,
+    "root_noise_m": 0.0,
+    "mask_error_px": 0.0,
+    "garment": "none",
+    "garment_lag": 0.5,
+    "subject_height_fraction": None,
+}
 #: looks (`StudioSettings.look`): shading plus the strength of the pose-dependent wrinkle shading (fine bands, broad
 #: fold shade). `default` is matte (Lambertian) cloth; `glossy` adds a broad white highlight that moves with the
 #: viewer (view-dependent colour) and deeper folds (stronger pose-dependent shading).
@@ -194,8 +200,16 @@ def _render_frame(f: int) -> int:
     normals = raycast.vertex_normals(verts, faces)
     imgs, masks, parsed = [], [], []
     for v, cam in enumerate(s["cameras"]):
-        r = raycast.render(verts, faces, cam, color_fn=color, shading=s["shading"], normals=normals,
-                           supersample=s["supersample"], caster=caster)  # fmt: skip
+        r = raycast.render(
+            verts,
+            faces,
+            cam,
+            color_fn=color,
+            shading=s["shading"],
+            normals=normals,
+            supersample=s["supersample"],
+            caster=caster,
+        )
         imgs.append(r.rgb)
         masks.append(r.mask)
         if s["mask_error_px"] > 0:
@@ -208,8 +222,13 @@ def _render_frame(f: int) -> int:
     return f
 
 
-def generate(settings: StudioSettings, out: str | Path | None = None, workers: int = 2, progress: bool = True,
-             force: bool = False) -> Path:  # fmt: skip
+def generate(
+    settings: StudioSettings,
+    out: str | Path | None = None,
+    workers: int = 2,
+    progress: bool = True,
+    force: bool = False,
+) -> Path:
     """Render the sequence into `out` (default: data_dir()/synthetic_studio/<hash>) unless it is already there."""
     import torch
     from tqdm import tqdm
@@ -253,8 +272,15 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     Th[:, 2] = -rotated[:, :, 2].min(1)  # stand on the floor
     posed = (rotated + Th[:, None]).astype(np.float32)  # [F, V, 3]
     faces = body.faces.cpu().numpy().astype(np.int64)
-    app = Appearance(body.rest_vertices.cpu().numpy(), faces, body.skin_weights.cpu().numpy(), rig, seed=settings.seed,
-                     wrinkle_strength=wrinkle_strength, broad_strength=broad_strength)  # fmt: skip
+    app = Appearance(
+        body.rest_vertices.cpu().numpy(),
+        faces,
+        body.skin_weights.cpu().numpy(),
+        rig,
+        seed=settings.seed,
+        wrinkle_strength=wrinkle_strength,
+        broad_strength=broad_strength,
+    )
     wrinkles = np.stack([app.wrinkle_multiplier(p) for p in seq.poses])  # [F, V]
     rest_h = float(body.rest_vertices[:, 2].max() - body.rest_vertices[:, 2].min())
     framed = settings.subject_height_fraction is not None
@@ -265,10 +291,16 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     skirt, skirt_posed = _skirt(settings, body, rig, seq.poses, Rroot, Th)
     fit_poses, fit_Th, fitted = _fitted(settings, body, seq.poses, Rroot, Th, posed)
     params = [
-        {"poses": fit_poses[f].reshape(1, -1), "Rh": seq.Rh[f].reshape(1, 3), "Th": fit_Th[f].reshape(1, 3),
-         "shapes": np.zeros((1, 10), np.float32), "body": settings.body, "skeleton": settings.skeleton}
+        {
+            "poses": fit_poses[f].reshape(1, -1),
+            "Rh": seq.Rh[f].reshape(1, 3),
+            "Th": fit_Th[f].reshape(1, 3),
+            "shapes": np.zeros((1, 10), np.float32),
+            "body": settings.body,
+            "skeleton": settings.skeleton,
+        }
         for f in range(F)
-    ]  # fmt: skip
+    ]
     root.mkdir(parents=True, exist_ok=True)
     atomic_write_text(started, json.dumps({"key": settings.key(), "settings": asdict(settings)}))
     writer = ZjuWriter(root, names, image_ext=settings.image_ext, jpeg_quality=settings.jpeg_quality)
@@ -276,14 +308,33 @@ def generate(settings: StudioSettings, out: str | Path | None = None, workers: i
     R = np.stack([c.world_to_cam[:3, :3] for c in cams])
     T = np.stack([c.world_to_cam[:3, 3] for c in cams])
     writer.write_cameras(K, None, R, T)
-    state = {"posed": posed, "faces": faces, "appearance": app, "wrinkles": wrinkles, "cameras": cams,
-             "camera_names": names, "params": params, "root": str(root), "supersample": settings.supersample,
-             "image_ext": settings.image_ext, "jpeg_quality": settings.jpeg_quality, "fitted": fitted,
-             "skirt": skirt, "skirt_posed": skirt_posed, "mask_error_px": settings.mask_error_px,
-             "seed": settings.seed, "shading": shading}  # fmt: skip
+    state = {
+        "posed": posed,
+        "faces": faces,
+        "appearance": app,
+        "wrinkles": wrinkles,
+        "cameras": cams,
+        "camera_names": names,
+        "params": params,
+        "root": str(root),
+        "supersample": settings.supersample,
+        "image_ext": settings.image_ext,
+        "jpeg_quality": settings.jpeg_quality,
+        "fitted": fitted,
+        "skirt": skirt,
+        "skirt_posed": skirt_posed,
+        "mask_error_px": settings.mask_error_px,
+        "seed": settings.seed,
+        "shading": shading,
+    }
     todo = [f for f in range(F) if not writer.frame_done(f)]  # frames an interrupted run finished are kept
-    bar = tqdm(total=F, initial=F - len(todo), desc=f"studio {settings.resolution}px x {settings.views} views",
-               unit="frame", disable=not progress)  # fmt: skip
+    bar = tqdm(
+        total=F,
+        initial=F - len(todo),
+        desc=f"studio {settings.resolution}px x {settings.views} views",
+        unit="frame",
+        disable=not progress,
+    )
     if workers > 1 and len(todo) > 1:
         ctx = mp.get_context("fork")
         with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(state,)) as pool:
@@ -335,8 +386,12 @@ def _skirt(settings: StudioSettings, body, rig, poses: np.ndarray, Rroot: np.nda
     if settings.garment == "none":
         return None, None
     pelvis = rig.index["pelvis"]
-    skirt = build_skirt(body.rest_vertices.cpu().numpy(), body.skin_weights.cpu().numpy(), list(body.joint_names),
-                        rig.rest_joints[pelvis])  # fmt: skip
+    skirt = build_skirt(
+        body.rest_vertices.cpu().numpy(),
+        body.skin_weights.cpu().numpy(),
+        list(body.joint_names),
+        rig.rest_joints[pelvis],
+    )
     with torch.no_grad():
         G = body.bone_transforms(torch.as_tensor(poses)).double().numpy()  # [F, J, 4, 4] rest -> posed (body frame)
     root = np.tile(np.eye(4), (len(poses), 1, 1))
@@ -384,8 +439,11 @@ def disk_size(path: Path) -> int:
 
 def main(argv: list[str] | None = None) -> None:
     d = StudioSettings()
-    ap = argparse.ArgumentParser(prog="python -m framework.data.studio", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    ap = argparse.ArgumentParser(
+        prog="python -m framework.data.studio",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument(
         "--out", default=None, help="output directory (default: the cache, <data_dir>/synthetic_studio/<hash>)"
     )
@@ -404,8 +462,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--root-noise-m", type=float, default=0.0, help="RMS root position jitter of stored poses (m)")
     ap.add_argument("--mask-error-px", type=float, default=0.0, help="parser-like mask errors in mask_cihp/ (px)")
     ap.add_argument("--garment", default="none", choices=GARMENTS, help="a loose garment (default none)")
-    ap.add_argument("--subject-height-fraction", type=float, default=None,
-                    help="frame the subject to this fraction of the image height (overrides --radius)")  # fmt: skip
+    ap.add_argument(
+        "--subject-height-fraction",
+        type=float,
+        default=None,
+        help="frame the subject to this fraction of the image height (overrides --radius)",
+    )
     ap.add_argument("--motion", default=d.motion, help="motion program: default | idle (near-static) | arms")
     ap.add_argument("--look", default=d.look, choices=sorted(LOOKS), help="default (matte cloth) | glossy")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="render processes (default 2)")

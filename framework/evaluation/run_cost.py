@@ -72,8 +72,17 @@ def render_fps(module, dm, split: str, warmup: int = 3, repeats: int = 10) -> tu
     first = batches[0]
 
     def new_view(i: int) -> None:
-        view = FrameBatch(first.image, first.mask, first.boundary, cams.index(i % cams.num), first.frame,
-                          first.pose, first.root, first.betas, first.view)  # fmt: skip
+        view = FrameBatch(
+            first.image,
+            first.mask,
+            first.boundary,
+            cams.index(i % cams.num),
+            first.frame,
+            first.pose,
+            first.root,
+            first.betas,
+            first.view,
+        )
         avatar(view, sh_degree=sh_degree)
 
     pose_fps = 1.0 / time_frames(new_pose, warmup, repeats, device)
@@ -91,8 +100,9 @@ def use_rasterizer(module, name: str) -> None:
     module.avatar.rasterizer = RASTERIZERS.build(name)
 
 
-def run_cost(module, dm, checkpoint: Path | None, train_seconds: float, steps: int, fps_frames: int,
-             fps_warmup: int = 3) -> dict[str, Any]:  # fmt: skip
+def run_cost(
+    module, dm, checkpoint: Path | None, train_seconds: float, steps: int, fps_frames: int, fps_warmup: int = 3
+) -> dict[str, Any]:
     """The results.json fields of a run's cost (see `framework.evaluation.run_record`); fps are skipped (None) when
     `fps_frames` is 0 or the data has no held-out split, and novel-pose fps when the model has no body to pose."""
     pose_fps = view_fps = None

@@ -59,8 +59,13 @@ def metrics_from_summary(summary: dict[str, float]) -> dict[str, dict[str, dict[
 
 def _commit() -> str | None:
     try:
-        done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, text=True,
-                              capture_output=True, timeout=10)  # fmt: skip
+        done = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            text=True,
+            capture_output=True,
+            timeout=10,
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     if done.returncode != 0:
@@ -72,8 +77,12 @@ def write_run_record(run_dir: Path, **fields: Any) -> Path:
     """Write results.json into `run_dir` (atomically); `fields` are the schema's keys except schema/code/created."""
     from framework import __version__
 
-    record = {"schema": SCHEMA, **fields, "code": {"version": __version__, "commit": _commit()},
-              "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}  # fmt: skip
+    record = {
+        "schema": SCHEMA,
+        **fields,
+        "code": {"version": __version__, "commit": _commit()},
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
     return atomic_write_text(Path(run_dir) / FILENAME, json.dumps(record, indent=1) + "\n")
 
 

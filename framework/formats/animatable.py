@@ -166,8 +166,12 @@ def corrected_canonical(package: AnimatablePackage, frame: int) -> Gaussians:
     c = {k: torch.from_numpy(np.asarray(v[frame])).to(g.means.device) for k, v in package.corrections.items()}
     sh_c = c["corrected_sh"]  # [N, Kc, 3]
     sh = torch.cat([sh_c, g.sh[:, sh_c.shape[1] :]], dim=1)
-    return g.replace(opacity_logits=c["corrected_opacity_logits"], log_scales=c["corrected_log_scales"],
-                     quats=c["corrected_quats"], sh=sh)  # fmt: skip
+    return g.replace(
+        opacity_logits=c["corrected_opacity_logits"],
+        log_scales=c["corrected_log_scales"],
+        quats=c["corrected_quats"],
+        sh=sh,
+    )
 
 
 def pose_frame(package: AnimatablePackage, frame: int) -> Gaussians:
@@ -179,5 +183,4 @@ def pose_frame(package: AnimatablePackage, frame: int) -> Gaussians:
     device = package.canonical.means.device
     weights = torch.from_numpy(np.asarray(package.skin_weights, dtype=np.float32)).to(device)
     transforms = torch.from_numpy(np.asarray(package.bone_transforms[frame], dtype=np.float32)).to(device)
-    return apply_lbs(corrected_canonical(package, frame), weights, transforms, package.stretch,
-                     centres=package.centres)  # fmt: skip
+    return apply_lbs(corrected_canonical(package, frame), weights, transforms, package.stretch, centres=package.centres)

@@ -102,8 +102,10 @@ def read_splat_ply(path: str | os.PathLike) -> Gaussians:
     per_channel = (degree + 1) ** 2 - 1
     missing = [name for name in ply_attribute_names(per_channel) if name not in present and name[0] != "n"]
     if missing:
-        raise SplatFileError(f"{path}: missing vertex properties {missing[:6]}; expected the 3DGS layout "
-                             f"(x y z, f_dc_0..2, f_rest_*, opacity, scale_0..2, rot_0..3).")  # fmt: skip
+        raise SplatFileError(
+            f"{path}: missing vertex properties {missing[:6]}; expected the 3DGS layout "
+            f"(x y z, f_dc_0..2, f_rest_*, opacity, scale_0..2, rot_0..3)."
+        )
 
     def cols(*names: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([np.asarray(vertex[name], dtype=np.float32) for name in names], axis=1))

@@ -37,19 +37,43 @@ _SCALE = (0.458, 0.448, 0.450)
 
 # Trunk layouts: ("conv", out_channels, kernel, stride, padding), "pool" = max pool, "tap" = LPIPS feature output.
 _ALEX = [
-    ("conv", 64, 11, 4, 2), "tap", ("pool", 3, 2),
-    ("conv", 192, 5, 1, 2), "tap", ("pool", 3, 2),
-    ("conv", 384, 3, 1, 1), "tap",
-    ("conv", 256, 3, 1, 1), "tap",
-    ("conv", 256, 3, 1, 1), "tap",
-]  # fmt: skip
+    ("conv", 64, 11, 4, 2),
+    "tap",
+    ("pool", 3, 2),
+    ("conv", 192, 5, 1, 2),
+    "tap",
+    ("pool", 3, 2),
+    ("conv", 384, 3, 1, 1),
+    "tap",
+    ("conv", 256, 3, 1, 1),
+    "tap",
+    ("conv", 256, 3, 1, 1),
+    "tap",
+]
 _VGG = [
-    ("conv", 64, 3, 1, 1), ("conv", 64, 3, 1, 1), "tap", ("pool", 2, 2),
-    ("conv", 128, 3, 1, 1), ("conv", 128, 3, 1, 1), "tap", ("pool", 2, 2),
-    ("conv", 256, 3, 1, 1), ("conv", 256, 3, 1, 1), ("conv", 256, 3, 1, 1), "tap", ("pool", 2, 2),
-    ("conv", 512, 3, 1, 1), ("conv", 512, 3, 1, 1), ("conv", 512, 3, 1, 1), "tap", ("pool", 2, 2),
-    ("conv", 512, 3, 1, 1), ("conv", 512, 3, 1, 1), ("conv", 512, 3, 1, 1), "tap",
-]  # fmt: skip
+    ("conv", 64, 3, 1, 1),
+    ("conv", 64, 3, 1, 1),
+    "tap",
+    ("pool", 2, 2),
+    ("conv", 128, 3, 1, 1),
+    ("conv", 128, 3, 1, 1),
+    "tap",
+    ("pool", 2, 2),
+    ("conv", 256, 3, 1, 1),
+    ("conv", 256, 3, 1, 1),
+    ("conv", 256, 3, 1, 1),
+    "tap",
+    ("pool", 2, 2),
+    ("conv", 512, 3, 1, 1),
+    ("conv", 512, 3, 1, 1),
+    ("conv", 512, 3, 1, 1),
+    "tap",
+    ("pool", 2, 2),
+    ("conv", 512, 3, 1, 1),
+    ("conv", 512, 3, 1, 1),
+    ("conv", 512, 3, 1, 1),
+    "tap",
+]
 _MIN_SIZE = {"alex": 31, "vgg": 16}  # smallest H, W for which every trunk layer keeps at least one pixel
 _NETS = {"alex": ("alexnet", "AlexNet_0", _ALEX), "vgg": ("vgg16", "VGG16_0", _VGG)}
 _ALIASES = {"alex": "alex", "alexnet": "alex", "vgg": "vgg", "vgg16": "vgg"}

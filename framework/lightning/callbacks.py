@@ -22,8 +22,14 @@ class StepProgressBar(Callback):
         self._pending: HostCopy | None = None  # loss and PSNR of a refresh, on their way to the host
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.bar = tqdm(total=trainer.max_steps, initial=trainer.global_step, desc="training", unit="it",
-                        dynamic_ncols=True, smoothing=0.05)  # fmt: skip
+        self.bar = tqdm(
+            total=trainer.max_steps,
+            initial=trainer.global_step,
+            desc="training",
+            unit="it",
+            dynamic_ncols=True,
+            smoothing=0.05,
+        )
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.bar is None:
@@ -38,8 +44,9 @@ class StepProgressBar(Callback):
             landed = next((c for c in (latest, self._pending) if c is not None and c.ready()), None)
             if landed is not None:
                 shown_loss, shown_psnr = (float(v.numpy()) for v in landed.values())
-                self.bar.set_postfix(loss=f"{shown_loss:.4f}", psnr=f"{shown_psnr:.2f}",
-                                     n=pl_module.avatar.gaussians.num, refresh=False)  # fmt: skip
+                self.bar.set_postfix(
+                    loss=f"{shown_loss:.4f}", psnr=f"{shown_psnr:.2f}", n=pl_module.avatar.gaussians.num, refresh=False
+                )
             self._pending = None if latest.ready() else latest
 
     def on_train_end(self, trainer, pl_module) -> None:
@@ -100,8 +107,11 @@ class StageSwitch(Callback):
         for (step0, t0), (step1, t1) in zip(marks, marks[1:], strict=False):
             if step1 > step0:
                 name = "stage2" if step0 >= self.stage1_steps else "stage1"
-                out[name] = {"steps": step1 - step0, "seconds": round(t1 - t0, 2),
-                             "steps_per_second": round((step1 - step0) / max(t1 - t0, 1e-9), 2)}  # fmt: skip
+                out[name] = {
+                    "steps": step1 - step0,
+                    "seconds": round(t1 - t0, 2),
+                    "steps_per_second": round((step1 - step0) / max(t1 - t0, 1e-9), 2),
+                }
         return out
 
     def _apply(self, trainer, pl_module) -> None:

@@ -29,8 +29,9 @@ def read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", what: st
     file and the fix."""
     path = checkpoint_file(path)
     if not path.is_file():
-        raise CheckpointError(f"{what}={path}: no such checkpoint file; point it at a run's checkpoints/last.ckpt "
-                              f"(or final.ckpt).")  # fmt: skip
+        raise CheckpointError(
+            f"{what}={path}: no such checkpoint file; point it at a run's checkpoints/last.ckpt (or final.ckpt)."
+        )
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:  # truncated zip, bad pickle, not a torch file at all

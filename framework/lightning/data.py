@@ -30,9 +30,16 @@ def collate_frames(items: Sequence[FrameBatch]) -> FrameBatch:
         height=first.height,
     )
     return FrameBatch(
-        image=cat("image"), mask=cat("mask"), boundary=cat("boundary"), cameras=cams, frame=cat("frame"),
-        pose=cat("pose"), root=cat("root"), betas=cat("betas"), view=cat("view"),
-    )  # fmt: skip
+        image=cat("image"),
+        mask=cat("mask"),
+        boundary=cat("boundary"),
+        cameras=cams,
+        frame=cat("frame"),
+        pose=cat("pose"),
+        root=cat("root"),
+        betas=cat("betas"),
+        view=cat("view"),
+    )
 
 
 class StepSampler(Sampler[int]):
@@ -43,8 +50,9 @@ class StepSampler(Sampler[int]):
     uninterrupted run would have seen, and no draw touches the global RNG (which the checkpoint restores for the
     model's own randomness)."""
 
-    def __init__(self, n: int, seed: int, start: Callable[[], int] = lambda: 0, num_samples: int = 1000,
-                 block: int = 1024) -> None:  # fmt: skip
+    def __init__(
+        self, n: int, seed: int, start: Callable[[], int] = lambda: 0, num_samples: int = 1000, block: int = 1024
+    ) -> None:
         self.n, self.seed, self.start, self.num_samples, self.block = n, seed, start, num_samples, block
 
     def indices(self, first: int, count: int) -> list[int]:

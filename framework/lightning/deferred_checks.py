@@ -67,8 +67,9 @@ class DeferredChecks:
                         labels.append(("grad", name))
         parts = finite_parts(tensors)  # [T]
         bad = ~torch.isfinite(parts.sum())  # []
-        self._pending.append(_Verdict(step, HostCopy([bad]), parts, labels, total.detach(),
-                                      {k: v.detach() for k, v in terms.items()}))  # fmt: skip
+        self._pending.append(
+            _Verdict(step, HostCopy([bad]), parts, labels, total.detach(), {k: v.detach() for k, v in terms.items()})
+        )
         return bad.float()
 
     def first_bad(self, *, before_step: int | None = None) -> str | None:

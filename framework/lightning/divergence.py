@@ -116,8 +116,10 @@ def describe(step: int, total: Tensor, terms: Mapping[str, Tensor], bad_params: 
     elif not math.isfinite(total_value):
         parts.append(f"the weighted total loss = {total_value} (every term finite: a weight or an overflow)")
     if bad_params:
-        parts.append("parameter values of group " + ", ".join(f"'{g}'" for g in bad_params) + " (from the previous "
-                     "step's optimizer or densifier update)")  # fmt: skip
+        parts.append(
+            "parameter values of group " + ", ".join(f"'{g}'" for g in bad_params) + " (from the previous "
+            "step's optimizer or densifier update)"
+        )
     if bad_grads:
         parts.append("gradient of parameter group " + ", ".join(f"'{g}'" for g in bad_grads))
     if not parts:

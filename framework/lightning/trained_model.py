@@ -40,8 +40,10 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
         built = {**cfg, "rasterizer": {k: v for k, v in raster.items() if k != "compile"}}
     if str(cfg["rasterizer"].get("name")) == "gsplat" and device.type != "cuda":
         built = {**cfg, "rasterizer": {"name": "numba"}}
-        print(f"[splatrig] ckpt={ckpt}: trained with rasterizer=gsplat, which renders CUDA tensors only; rendering on "
-              f"the {device.type} with numba (the same function)")  # fmt: skip
+        print(
+            f"[splatrig] ckpt={ckpt}: trained with rasterizer=gsplat, which renders CUDA tensors only; rendering on "
+            f"the {device.type} with numba (the same function)"
+        )
     module = SplatModule(built, hparams["data_info"])
     if built is not cfg:
         module.cfg = module.hparams["cfg"] = cfg
@@ -78,8 +80,9 @@ def datamodule_for(module):
     return FrameDataModule(functools.partial(build_split, cfg["data"]), val_split=cfg["eval"]["val_split"])
 
 
-def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu",
-                    rasterizer: str | None = None) -> dict[str, tuple[float, float]]:  # fmt: skip
+def interleaved_fps(
+    ckpts: dict[str, Path], warmup: int, repeats: int, rounds: int, device: str = "cpu", rasterizer: str | None = None
+) -> dict[str, tuple[float, float]]:
     """(novel-pose, novel-view) fps of each checkpoint: median over `rounds` rounds, each model timed once per round
     (`render_fps` on the first split of `TIMING_SPLITS` its data has, baked weights). Why interleaved: a shared
     machine's speed drifts over minutes, and timing the models one after the other would turn that drift into a
@@ -105,5 +108,6 @@ def interleaved_fps(ckpts: dict[str, Path], warmup: int, repeats: int, rounds: i
     for _ in range(rounds):
         for name, (module, dm, split) in loaded.items():
             times[name].append(render_fps(module, dm, split, warmup=warmup, repeats=repeats))
-    return {name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts))
-            for name, ts in times.items()}  # fmt: skip
+    return {
+        name: (statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts)) for name, ts in times.items()
+    }

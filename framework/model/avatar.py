@@ -40,7 +40,7 @@ class GaussianParams(nn.Module):
             {
                 k: nn.Parameter(v.detach().clone().float().contiguous(), requires_grad=k != "skin_weights")
                 for k, v in tensors.items()
-            }  # fmt: skip
+            }
         )
 
     @property

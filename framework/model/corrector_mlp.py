@@ -69,8 +69,9 @@ class MLPCorrector(Corrector):
         self.head: nn.Linear | None = None
         self.register_buffer("active_rows", torch.zeros(0, dtype=torch.long))  # [M] (empty: all rows)
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                              error_msgs) -> None:  # fmt: skip
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ) -> None:
         """A stored `active_rows` may have any length; checkpoints written before it existed have none (all rows)."""
         key = prefix + "active_rows"
         if key in state_dict:
@@ -78,8 +79,9 @@ class MLPCorrector(Corrector):
         else:
             self.active_rows = self.active_rows.new_zeros(0)
         first = len(missing_keys)
-        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                                      error_msgs)  # fmt: skip
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
         if key in missing_keys[first:]:
             missing_keys.remove(key)
 

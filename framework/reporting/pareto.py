@@ -23,8 +23,11 @@ def pareto_front(points: Sequence[Sequence[float]], maximise: Sequence[bool]) ->
     oriented = [tuple(s * float(v) for s, v in zip(signs, p, strict=True)) for p in points]
     on_front = [False] * len(points)
     front: list[tuple[float, ...]] = []
-    order = sorted((i for i, p in enumerate(oriented) if not any(math.isnan(v) for v in p)),
-                   key=lambda i: oriented[i], reverse=True)  # fmt: skip
+    order = sorted(
+        (i for i, p in enumerate(oriented) if not any(math.isnan(v) for v in p)),
+        key=lambda i: oriented[i],
+        reverse=True,
+    )
     for i in order:
         if not any(dominates(f, oriented[i]) for f in front):
             front.append(oriented[i])

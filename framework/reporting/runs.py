@@ -17,8 +17,20 @@ from framework.errors import SplatrigError
 from framework.evaluation.run_record import FILENAME, load_run_record
 
 #: override keys (before "=") that do not change the trained model
-NOT_VARIANT_KEYS = ("seed", "paths.", "hydra.", "callbacks.", "logger", "threads", "small_work_threads", "ckpt",
-                    "ckpt_path", "data_loader.", "data.workers", "eval.val_max_items")  # fmt: skip
+NOT_VARIANT_KEYS = (
+    "seed",
+    "paths.",
+    "hydra.",
+    "callbacks.",
+    "logger",
+    "threads",
+    "small_work_threads",
+    "ckpt",
+    "ckpt_path",
+    "data_loader.",
+    "data.workers",
+    "eval.val_max_items",
+)
 
 
 class ReportError(SplatrigError):
@@ -58,8 +70,15 @@ def find_runs(dirs: Sequence[str | Path]) -> list[Run]:
             raise ReportError(f"{root}: no such directory; give the sweep directories the runs wrote into.")
         for path in sorted(root.rglob(FILENAME)):
             record = load_run_record(path)
-            runs.append(Run(path=path.parent, experiment=str(record["experiment"]), seed=int(record["seed"]),
-                            variant=variant_of(record.get("overrides", [])), record=record))  # fmt: skip
+            runs.append(
+                Run(
+                    path=path.parent,
+                    experiment=str(record["experiment"]),
+                    seed=int(record["seed"]),
+                    variant=variant_of(record.get("overrides", [])),
+                    record=record,
+                )
+            )
     if not runs:
         raise ReportError(
             f"no {FILENAME} found under {', '.join(str(d) for d in dirs)}; each training run writes one into its "

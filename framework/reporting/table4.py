@@ -153,8 +153,9 @@ def build_table(runs: list[Run]) -> Table4:
                     delta = paper_delta(experiment, split, metric) if paper is not None else None
                     judged = verdict(diff, delta) if metric == "psnr" else None
                     cells[(region, split, metric)] = Cell(value, diff, delta, judged)
-        rows.append(Row(own[v], experiment, _label(experiment, extras(v)), paper,
-                        tuple(sorted(r.seed for r in members)), cells))  # fmt: skip
+        rows.append(
+            Row(own[v], experiment, _label(experiment, extras(v)), paper, tuple(sorted(r.seed for r in members)), cells)
+        )
     return Table4(rows, shared, runs)
 
 
@@ -216,14 +217,42 @@ def to_markdown(table: Table4, title: str = "Table 4 (ablations), reproduced") -
 def to_csv(table: Table4) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["region", "row", "experiment", "split", "metric", "n", "seeds", "mean", "std", "delta", "sigma",
-                "paper_delta", "verdict"])  # fmt: skip
+    w.writerow(
+        [
+            "region",
+            "row",
+            "experiment",
+            "split",
+            "metric",
+            "n",
+            "seeds",
+            "mean",
+            "std",
+            "delta",
+            "sigma",
+            "paper_delta",
+            "verdict",
+        ]
+    )
     for row in table.rows:
         for (region, split, metric), c in row.cells.items():
-            w.writerow([region, row.label, row.experiment, split, metric, c.value.n, " ".join(map(str, row.seeds)),
-                        c.value.mean, c.value.std, "" if c.diff is None else c.diff.delta,
-                        "" if c.diff is None else c.diff.sigma, "" if c.paper_delta is None else c.paper_delta,
-                        c.verdict or ""])  # fmt: skip
+            w.writerow(
+                [
+                    region,
+                    row.label,
+                    row.experiment,
+                    split,
+                    metric,
+                    c.value.n,
+                    " ".join(map(str, row.seeds)),
+                    c.value.mean,
+                    c.value.std,
+                    "" if c.diff is None else c.diff.delta,
+                    "" if c.diff is None else c.diff.sigma,
+                    "" if c.paper_delta is None else c.paper_delta,
+                    c.verdict or "",
+                ]
+            )
     return buf.getvalue()
 
 
@@ -242,16 +271,27 @@ def figure(table: Table4):
         xs = range(len(rows))
         for k, (region, r_label) in enumerate(REGIONS):
             cells = [r.cells[(region, split, "psnr")] for r in rows]
-            ax.bar([x + (k - 1) * width for x in xs], [c.diff.delta for c in cells], width,
-                   yerr=[2 * c.diff.sigma if not math.isnan(c.diff.sigma) else 0 for c in cells], capsize=2,
-                   label=f"ours, {r_label} (±2σ)")  # fmt: skip
+            ax.bar(
+                [x + (k - 1) * width for x in xs],
+                [c.diff.delta for c in cells],
+                width,
+                yerr=[2 * c.diff.sigma if not math.isnan(c.diff.sigma) else 0 for c in cells],
+                capsize=2,
+                label=f"ours, {r_label} (±2σ)",
+            )
         paper = [r.cells[("image", split, "psnr")].paper_delta for r in rows]
-        ax.bar([x + width for x in xs], [math.nan if p is None else p for p in paper], width, color="0.55",
-               label="paper (ZJU-MoCap 313)")  # fmt: skip
+        ax.bar(
+            [x + width for x in xs],
+            [math.nan if p is None else p for p in paper],
+            width,
+            color="0.55",
+            label="paper (ZJU-MoCap 313)",
+        )
         ax.axhline(0.0, color="k", lw=0.8)
         ax.set_xticks(list(xs))
-        ax.set_xticklabels([r.experiment if not r.key or r.paper else r.label for r in rows], rotation=60,
-                           ha="right", fontsize=8)  # fmt: skip
+        ax.set_xticklabels(
+            [r.experiment if not r.key or r.paper else r.label for r in rows], rotation=60, ha="right", fontsize=8
+        )
         ax.set_title(f"{s_label}: Δ PSNR to {REFERENCE}")
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("Δ PSNR (dB)")
@@ -278,8 +318,10 @@ def write_report(runs: list[Run], out_dir: Path) -> tuple[str, list[Path]]:
     table = build_table(runs)
     markdown = to_markdown(table)
     out_dir = Path(out_dir)
-    paths = [atomic_write_text(out_dir / "table4.md", markdown), atomic_write_text(out_dir / "table4.csv",
-                                                                                   to_csv(table))]  # fmt: skip
+    paths = [
+        atomic_write_text(out_dir / "table4.md", markdown),
+        atomic_write_text(out_dir / "table4.csv", to_csv(table)),
+    ]
     fig = figure(table)
     paths.append(save_png(fig, out_dir / "table4.png"))
     log_tensorboard(table, markdown, fig, out_dir / "tb")

@@ -104,13 +104,15 @@ def build_points(runs: list[Run]) -> list[Point]:
         costs = [_cost(r) for r in members]
         mean = {k: spread(c[k] for c in costs).mean for k in costs[0]}
         points.append(Point(label, tuple(sorted(r.seed for r in members)), **mean))
-    everything = pareto_front([(p.psnr, *(getattr(p, o.key) for o in OBJECTIVES)) for p in points],
-                              [True, *(o.maximise for o in OBJECTIVES)])  # fmt: skip
+    everything = pareto_front(
+        [(p.psnr, *(getattr(p, o.key) for o in OBJECTIVES)) for p in points], [True, *(o.maximise for o in OBJECTIVES)]
+    )
     for p, on in zip(points, everything, strict=True):
         p.on_front = on
     for o in OBJECTIVES:
-        for p, on in zip(points, pareto_front([(p.psnr, getattr(p, o.key)) for p in points], [True, o.maximise]),
-                         strict=True):  # fmt: skip
+        for p, on in zip(
+            points, pareto_front([(p.psnr, getattr(p, o.key)) for p in points], [True, o.maximise]), strict=True
+        ):
             p.front[o.key] = on
     return sorted(points, key=lambda p: (not p.on_front, -p.psnr if not math.isnan(p.psnr) else math.inf, p.label))
 
@@ -134,8 +136,10 @@ def parse_budget(text: str) -> Budget:
     """'fps>=60' -> Budget('fps', '>=', 60.0); keys: psnr, fps, train_min, peak_mib, model_mb."""
     m = re.fullmatch(r"\s*([a-z_]+)\s*(>=|<=)\s*([-+0-9.eE]+)\s*", text)
     if m is None or m.group(1) not in BUDGET_KEYS:
-        raise ReportError(f"--budget {text!r}: expected KEY>=NUMBER or KEY<=NUMBER with KEY one of "
-                          f"{', '.join(BUDGET_KEYS)}, e.g. fps>=60 or model_mb<=10.")  # fmt: skip
+        raise ReportError(
+            f"--budget {text!r}: expected KEY>=NUMBER or KEY<=NUMBER with KEY one of "
+            f"{', '.join(BUDGET_KEYS)}, e.g. fps>=60 or model_mb<=10."
+        )
     try:
         return Budget(m.group(1), m.group(2), float(m.group(3)))
     except ValueError:
@@ -192,11 +196,31 @@ def _fmt(x: float, digits: int = 2) -> str:
 
 
 def points_markdown(points: list[Point]) -> str:
-    header = ("point", "seeds", "front", "novel-pose PSNR", "fps (novel pose)", "train min", "peak MiB", "model MB",
-              "Gaussians")  # fmt: skip
-    rows = [(p.label, ",".join(map(str, p.seeds)), "yes" if p.on_front else "", _fmt(p.psnr), _fmt(p.fps, 1),
-             _fmt(p.train_min), _fmt(p.peak_mib, 0), _fmt(p.model_mb, 3), _fmt(p.num_gaussians, 0))
-            for p in points]  # fmt: skip
+    header = (
+        "point",
+        "seeds",
+        "front",
+        "novel-pose PSNR",
+        "fps (novel pose)",
+        "train min",
+        "peak MiB",
+        "model MB",
+        "Gaussians",
+    )
+    rows = [
+        (
+            p.label,
+            ",".join(map(str, p.seeds)),
+            "yes" if p.on_front else "",
+            _fmt(p.psnr),
+            _fmt(p.fps, 1),
+            _fmt(p.train_min),
+            _fmt(p.peak_mib, 0),
+            _fmt(p.model_mb, 3),
+            _fmt(p.num_gaussians, 0),
+        )
+        for p in points
+    ]
     return format_table(rows, header)
 
 
@@ -206,8 +230,10 @@ def gains_markdown(gains: list[KnobGain]) -> str:
             return "no speed gained"
         return "free" if math.isinf(g.per_db) else _fmt(g.per_db)
 
-    rows = [(g.label, _fmt(g.db_lost), f"{_fmt(g.train_speedup)}x", f"{_fmt(g.fps_speedup)}x", _fmt(g.doublings),
-             per_db(g)) for g in gains]  # fmt: skip
+    rows = [
+        (g.label, _fmt(g.db_lost), f"{_fmt(g.train_speedup)}x", f"{_fmt(g.fps_speedup)}x", _fmt(g.doublings), per_db(g))
+        for g in gains
+    ]
     header = ("knob", "dB lost", "training speed-up", "fps speed-up", "speed doublings", "doublings per dB lost")
     return format_table(rows, header)
 
@@ -251,8 +277,15 @@ def to_csv(points: list[Point]) -> str:
     keys = ("psnr", "fps", "train_min", "peak_mib", "model_mb", "num_gaussians")
     w.writerow(["point", "seeds", "on_front", *keys, *(f"front_{o.key}" for o in OBJECTIVES)])
     for p in points:
-        w.writerow([p.label, " ".join(map(str, p.seeds)), int(p.on_front), *(getattr(p, k) for k in keys),
-                    *(int(p.front[o.key]) for o in OBJECTIVES)])  # fmt: skip
+        w.writerow(
+            [
+                p.label,
+                " ".join(map(str, p.seeds)),
+                int(p.on_front),
+                *(getattr(p, k) for k in keys),
+                *(int(p.front[o.key]) for o in OBJECTIVES),
+            ]
+        )
     return buf.getvalue()
 
 
@@ -268,8 +301,13 @@ def figure(points: list[Point], objective: Objective):
     shown = [p for p in points if not math.isnan(p.psnr) and not math.isnan(getattr(p, objective.key))]
     for on, style in ((False, dict(c="0.6", s=18)), (True, dict(c="tab:red", s=30))):
         sel = [p for p in shown if p.front[objective.key] == on]
-        ax.scatter([getattr(p, objective.key) for p in sel], [p.psnr for p in sel], zorder=3,
-                   label="Pareto front" if on else "dominated", **style)  # fmt: skip
+        ax.scatter(
+            [getattr(p, objective.key) for p in sel],
+            [p.psnr for p in sel],
+            zorder=3,
+            label="Pareto front" if on else "dominated",
+            **style,
+        )
     front = sorted((p for p in shown if p.front[objective.key]), key=lambda p: getattr(p, objective.key))
     ax.plot([getattr(p, objective.key) for p in front], [p.psnr for p in front], c="tab:red", lw=1, zorder=2)
     for p in shown:
@@ -298,8 +336,10 @@ def write_report(runs: list[Run], out_dir: Path, budgets: list[str] | None = Non
     gains = knob_gains(points)
     markdown = to_markdown(points, runs, parsed, gains)
     out_dir = Path(out_dir)
-    paths = [atomic_write_text(out_dir / "tradeoff.md", markdown), atomic_write_text(out_dir / "tradeoff.csv",
-                                                                                     to_csv(points))]  # fmt: skip
+    paths = [
+        atomic_write_text(out_dir / "tradeoff.md", markdown),
+        atomic_write_text(out_dir / "tradeoff.csv", to_csv(points)),
+    ]
     with SummaryWriter(log_dir=str(out_dir / "tb")) as writer:
         writer.add_text("tradeoff", markdown)
         for objective in OBJECTIVES:

@@ -44,8 +44,9 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
 
     def put(mask, u0, u1, u2):
         nonlocal bary
-        new = np.stack([np.broadcast_to(u0, mask.shape), np.broadcast_to(u1, mask.shape),
-                        np.broadcast_to(u2, mask.shape)], axis=-1)  # fmt: skip
+        new = np.stack(
+            [np.broadcast_to(u0, mask.shape), np.broadcast_to(u1, mask.shape), np.broadcast_to(u2, mask.shape)], axis=-1
+        )
         bary = np.where(mask[..., None], new, bary)
 
     # Regions in reverse priority so that the first matching test of Ericson's sequence wins.

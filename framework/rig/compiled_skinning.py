@@ -98,8 +98,17 @@ def _polar_block(A9, start, stop, X, state) -> None:
             n00, n01, n02 = a * x00 + b * c00, a * x01 + b * c01, a * x02 + b * c02
             n10, n11, n12 = a * x10 + b * c10, a * x11 + b * c11, a * x12 + b * c12
             n20, n21, n22 = a * x20 + b * c20, a * x21 + b * c21, a * x22 + b * c22
-            step = max(abs(n00 - x00), abs(n01 - x01), abs(n02 - x02), abs(n10 - x10), abs(n11 - x11),
-                       abs(n12 - x12), abs(n20 - x20), abs(n21 - x21), abs(n22 - x22))  # fmt: skip
+            step = max(
+                abs(n00 - x00),
+                abs(n01 - x01),
+                abs(n02 - x02),
+                abs(n10 - x10),
+                abs(n11 - x11),
+                abs(n12 - x12),
+                abs(n20 - x20),
+                abs(n21 - x21),
+                abs(n22 - x22),
+            )
             go = s == _PENDING
             X[0, k], X[1, k], X[2, k] = (n00 if go else x00), (n01 if go else x01), (n02 if go else x02)
             X[3, k], X[4, k], X[5, k] = (n10 if go else x10), (n11 if go else x11), (n12 if go else x12)
@@ -161,14 +170,23 @@ def _unit_quat(quats, n) -> tuple[float, float, float, float, float]:
 @njit(cache=True, nogil=True, inline="always")
 def _axes(w, qx, qy, qz) -> tuple[float, float, float, float, float, float, float, float, float]:
     """The rotation of the unit quaternion wxyz, row-major: its columns are the Gaussian's axes a_l."""
-    return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
-            2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx),
-            2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy))  # fmt: skip
+    return (
+        1 - 2 * (qy * qy + qz * qz),
+        2 * (qx * qy - w * qz),
+        2 * (qx * qz + w * qy),
+        2 * (qx * qy + w * qz),
+        1 - 2 * (qx * qx + qz * qz),
+        2 * (qy * qz - w * qx),
+        2 * (qx * qz - w * qy),
+        2 * (qy * qz + w * qx),
+        1 - 2 * (qx * qx + qy * qy),
+    )
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rt_a(r00, r01, r02, r10, r11, r12, r20, r21, r22, a00, a01, a02, a10, a11, a12, a20, a21, a22
-          ) -> tuple[float, float, float, float, float, float, float, float, float]:  # fmt: skip
+def _rt_a(
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, a00, a01, a02, a10, a11, a12, a20, a21, a22
+) -> tuple[float, float, float, float, float, float, float, float, float]:
     """R^T A, row-major, from the row-major entries of R and A."""
     # fmt: off
     return (r00 * a00 + r10 * a10 + r20 * a20, r00 * a01 + r10 * a11 + r20 * a21, r00 * a02 + r10 * a12 + r20 * a22,
@@ -181,8 +199,25 @@ def _rt_a(r00, r01, r02, r10, r11, r12, r20, r21, r22, a00, a01, a02, a10, a11, 
 def _rt_a_into(R, A, M) -> None:
     """M = R^T A for [3, 3] arrays (`_rt_a`)."""
     M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2] = _rt_a(
-        R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2],
-        A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2])  # fmt: skip
+        R[0, 0],
+        R[0, 1],
+        R[0, 2],
+        R[1, 0],
+        R[1, 1],
+        R[1, 2],
+        R[2, 0],
+        R[2, 1],
+        R[2, 2],
+        A[0, 0],
+        A[0, 1],
+        A[0, 2],
+        A[1, 0],
+        A[1, 1],
+        A[1, 2],
+        A[2, 0],
+        A[2, 1],
+        A[2, 2],
+    )
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -196,23 +231,58 @@ def _quadratic_form(c0, c1, c2, m00, m01, m02, m10, m11, m12, m20, m21, m22) -> 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _stretch(q00, q01, q02, q10, q11, q12, q20, q21, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22
-             ) -> tuple[float, float, float]:  # fmt: skip
+def _stretch(
+    q00, q01, q02, q10, q11, q12, q20, q21, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22
+) -> tuple[float, float, float]:
     """k_l = a_l^T M a_l for the columns a_l of Q (row-major entries of Q and M)."""
-    return (_quadratic_form(q00, q10, q20, m00, m01, m02, m10, m11, m12, m20, m21, m22),
-            _quadratic_form(q01, q11, q21, m00, m01, m02, m10, m11, m12, m20, m21, m22),
-            _quadratic_form(q02, q12, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22))  # fmt: skip
+    return (
+        _quadratic_form(q00, q10, q20, m00, m01, m02, m10, m11, m12, m20, m21, m22),
+        _quadratic_form(q01, q11, q21, m00, m01, m02, m10, m11, m12, m20, m21, m22),
+        _quadratic_form(q02, q12, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22),
+    )
 
 
 @njit(cache=True, nogil=True, inline="always")  # a call passing its nine arrays cost as much as the work
-def _pose_lane(n, k, A9, t3, X, means, quats, log_scales, blended_centres, diag_stretch,
-               out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
+def _pose_lane(
+    n,
+    k,
+    A9,
+    t3,
+    X,
+    means,
+    quats,
+    log_scales,
+    blended_centres,
+    diag_stretch,
+    out_means,
+    out_quats,
+    out_log_scales,
+    out_rotations,
+) -> None:
     """Pose Gaussian n from its blended affine part (A9[:, n], t3[:, n]) and A's rotation factor X[:, k]. On scalars:
     copied into 3x3 arrays, the same arithmetic took 2.3x as long (every entry went through memory)."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = X[0, k], X[1, k], X[2, k], X[3, k], X[4, k], X[5, k], X[6, k], \
-        X[7, k], X[8, k]  # fmt: skip
-    a00, a01, a02, a10, a11, a12, a20, a21, a22 = A9[0, n], A9[1, n], A9[2, n], A9[3, n], A9[4, n], A9[5, n], \
-        A9[6, n], A9[7, n], A9[8, n]  # fmt: skip
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (
+        X[0, k],
+        X[1, k],
+        X[2, k],
+        X[3, k],
+        X[4, k],
+        X[5, k],
+        X[6, k],
+        X[7, k],
+        X[8, k],
+    )
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = (
+        A9[0, n],
+        A9[1, n],
+        A9[2, n],
+        A9[3, n],
+        A9[4, n],
+        A9[5, n],
+        A9[6, n],
+        A9[7, n],
+        A9[8, n],
+    )
     _, _, aw, ax, ay, az = _rotmat_to_quat(r00, r01, r02, r10, r11, r12, r20, r21, r22)
     x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
     if blended_centres:
@@ -237,8 +307,9 @@ def _pose_lane(n, k, A9, t3, X, means, quats, log_scales, blended_centres, diag_
         return
     # the Gaussian's axes a_l (columns of its rotation) and k_l = a_l^T (R^T A) a_l
     q00, q01, q02, q10, q11, q12, q20, q21, q22 = _axes(w, qx, qy, qz)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = _rt_a(r00, r01, r02, r10, r11, r12, r20, r21, r22,
-                                                        a00, a01, a02, a10, a11, a12, a20, a21, a22)  # fmt: skip
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = _rt_a(
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, a00, a01, a02, a10, a11, a12, a20, a21, a22
+    )
     k0, k1, k2 = _stretch(q00, q01, q02, q10, q11, q12, q20, q21, q22, m00, m01, m02, m10, m11, m12, m20, m21, m22)
     out_log_scales[n, 0] = log_scales[n, 0] + math.log(max(k0, LBS_MIN_STRETCH))
     out_log_scales[n, 1] = log_scales[n, 1] + math.log(max(k1, LBS_MIN_STRETCH))
@@ -266,8 +337,21 @@ def blend_skipping_zeros(weights, transforms, A9, t3) -> None:
 
 
 @njit(cache=True, nogil=True)
-def skin_affine_forward(A9, t3, means, quats, log_scales, blended_centres, diag_stretch, start, stop,
-                        out_means, out_quats, out_log_scales, out_rotations) -> None:  # fmt: skip
+def skin_affine_forward(
+    A9,
+    t3,
+    means,
+    quats,
+    log_scales,
+    blended_centres,
+    diag_stretch,
+    start,
+    stop,
+    out_means,
+    out_quats,
+    out_log_scales,
+    out_rotations,
+) -> None:
     """Pose Gaussians [start, stop) from their blended affine parts A9 [9, N] and t3 [3, N] (entry-major, as
     `framework.rig.lbs.blended_affine` gives them): means [N, 3], quats [N, 4] (wxyz, any norm), log_scales [N, 3]
     -> out_means [N, 3], out_quats [N, 4], out_log_scales [N, 3] and the rotations out_rotations [N, 3, 3] (the SH
@@ -278,8 +362,22 @@ def skin_affine_forward(A9, t3, means, quats, log_scales, blended_centres, diag_
         last = min(first + _BLOCK, stop)
         _polar_block(A9, first, last, X, state)
         for n in range(first, last):
-            _pose_lane(n, n - first, A9, t3, X, means, quats, log_scales, blended_centres, diag_stretch,
-                       out_means, out_quats, out_log_scales, out_rotations)  # fmt: skip
+            _pose_lane(
+                n,
+                n - first,
+                A9,
+                t3,
+                X,
+                means,
+                quats,
+                log_scales,
+                blended_centres,
+                diag_stretch,
+                out_means,
+                out_quats,
+                out_log_scales,
+                out_rotations,
+            )
 
 
 @njit(cache=True, nogil=True)
@@ -323,8 +421,23 @@ def _polar_backward(A, R, G, out) -> None:
 
 
 @njit(cache=True, nogil=True)
-def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stretch, g_means, g_quats,
-                         g_log_scales, g_rotations, start, stop, grad_A9, grad_means, grad_quats) -> None:  # fmt: skip
+def skin_affine_backward(
+    A9,
+    means,
+    quats,
+    rotations,
+    blended_centres,
+    diag_stretch,
+    g_means,
+    g_quats,
+    g_log_scales,
+    g_rotations,
+    start,
+    stop,
+    grad_A9,
+    grad_means,
+    grad_quats,
+) -> None:
     """The gradients of `skin_affine_forward`'s outputs (g_*) carried back to A9 [9, N], means [N, 3] and quats
     [N, 4], for Gaussians [start, stop); `rotations` [N, 3, 3] are the forward's R. (The translation's gradient is
     g_means itself, the log-scales' is g_log_scales: the wrapper passes those on.)"""
@@ -337,8 +450,9 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
                 R[i, j] = rotations[n, i, j]
                 gR[i, j] = g_rotations[n, i, j]
                 gA[i, j] = 0.0
-        best, s, aw, ax, ay, az = _rotmat_to_quat(R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0],
-                                                  R[2, 1], R[2, 2])  # fmt: skip
+        best, s, aw, ax, ay, az = _rotmat_to_quat(
+            R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+        )
         w, qx, qy, qz, qnorm = _unit_quat(quats, n)
         # centres: A x + t (or R x + t)
         x0, x1, x2 = means[n, 0], means[n, 1], means[n, 2]
@@ -369,16 +483,40 @@ def skin_affine_backward(A9, means, quats, rotations, blended_centres, diag_stre
                 for j in range(3):
                     gM[i, j] = 0.0
                     gQ[i, j] = 0.0
-            ks = _stretch(Q[0, 0], Q[0, 1], Q[0, 2], Q[1, 0], Q[1, 1], Q[1, 2], Q[2, 0], Q[2, 1], Q[2, 2],
-                          M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])  # fmt: skip
+            ks = _stretch(
+                Q[0, 0],
+                Q[0, 1],
+                Q[0, 2],
+                Q[1, 0],
+                Q[1, 1],
+                Q[1, 2],
+                Q[2, 0],
+                Q[2, 1],
+                Q[2, 2],
+                M[0, 0],
+                M[0, 1],
+                M[0, 2],
+                M[1, 0],
+                M[1, 1],
+                M[1, 2],
+                M[2, 0],
+                M[2, 1],
+                M[2, 2],
+            )
             for l in range(3):  # noqa: E741
                 k = ks[l]
                 gk = g_log_scales[n, l] / k if k >= LBS_MIN_STRETCH else 0.0
                 for i in range(3):
                     for j in range(3):
                         gM[i, j] += gk * Q[i, l] * Q[j, l]
-                    gQ[i, l] += gk * (M[i, 0] * Q[0, l] + M[i, 1] * Q[1, l] + M[i, 2] * Q[2, l]
-                                      + M[0, i] * Q[0, l] + M[1, i] * Q[1, l] + M[2, i] * Q[2, l])  # fmt: skip
+                    gQ[i, l] += gk * (
+                        M[i, 0] * Q[0, l]
+                        + M[i, 1] * Q[1, l]
+                        + M[i, 2] * Q[2, l]
+                        + M[0, i] * Q[0, l]
+                        + M[1, i] * Q[1, l]
+                        + M[2, i] * Q[2, l]
+                    )
             for a in range(3):
                 for b in range(3):
                     gR[a, b] += A[a, 0] * gM[b, 0] + A[a, 1] * gM[b, 1] + A[a, 2] * gM[b, 2]  # A gM^T
@@ -473,9 +611,14 @@ def lbs_with_sh_frames_trainable(gaussians, weights, transforms, stretch: str = 
     A, t = blended_affine(weights, transforms)  # [3, 3, N], [3, N]
     N = A.shape[-1]
     means, quats, log_scales, R = _SkinAffine.apply(
-        A.reshape(9, N), t, gaussians.means, gaussians.quats, gaussians.log_scales, centres == "blended",
+        A.reshape(9, N),
+        t,
+        gaussians.means,
+        gaussians.quats,
+        gaussians.log_scales,
+        centres == "blended",
         stretch == "diag",
-    )  # fmt: skip
+    )
     return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R
 
 
@@ -497,9 +640,21 @@ def lbs_with_sh_frames_compiled(gaussians, weights, transforms, stretch: str = "
         blend_skipping_zeros(f64(weights), f64(transforms[:, :3, :].reshape(-1, 12)), A9, t3)
     out_means, out_quats, out_log_scales = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
     out_rotations = np.empty((N, 3, 3))
-    skin_affine_forward(A9, t3, f64(gaussians.means), f64(gaussians.quats), f64(gaussians.log_scales),
-                        centres == "blended", stretch == "diag", 0, N, out_means, out_quats, out_log_scales,
-                        out_rotations)  # fmt: skip
+    skin_affine_forward(
+        A9,
+        t3,
+        f64(gaussians.means),
+        f64(gaussians.quats),
+        f64(gaussians.log_scales),
+        centres == "blended",
+        stretch == "diag",
+        0,
+        N,
+        out_means,
+        out_quats,
+        out_log_scales,
+        out_rotations,
+    )
     posed = gaussians.replace(
         means=torch.from_numpy(out_means).to(dtype),
         quats=torch.from_numpy(out_quats).to(dtype),

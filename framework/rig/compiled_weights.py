@@ -165,9 +165,22 @@ def smooth_weights_forward(
 
 @njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def smooth_weights_backward(
-    points, table, lo, hi, counts, mode, eps, grid_all, weights_all, grad_centre, grad_lw, start, stop, grad_points,
+    points,
+    table,
+    lo,
+    hi,
+    counts,
+    mode,
+    eps,
+    grid_all,
+    weights_all,
+    grad_centre,
+    grad_lw,
+    start,
+    stop,
+    grad_points,
     grad_dw,
-) -> None:  # fmt: skip
+) -> None:
     """The forward's gradients, from its grid_all and weights_all [N, 7, J]: grad_centre [N, J], grad_lw [N] ->
     grad_points [N, 7, 3], grad_dw [N, 7, J] (mode 1 and 2), for Gaussians start..stop."""
     J = table.shape[1]

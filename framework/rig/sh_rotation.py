@@ -45,8 +45,10 @@ def _degree1_rotation(R: Tensor) -> Tensor:
     """R [N, 3, 3] -> the degree-1 block's rotation [N, 3, 3] (row k gives rotated coefficient k)."""
     key = (R.dtype, R.device)
     if key not in _deg1_cache:
-        _deg1_cache[key] = (torch.tensor(_DEG1_PERM, device=R.device), torch.tensor(_DEG1_SIGN, dtype=R.dtype,
-                                                                                    device=R.device))  # fmt: skip
+        _deg1_cache[key] = (
+            torch.tensor(_DEG1_PERM, device=R.device),
+            torch.tensor(_DEG1_SIGN, dtype=R.dtype, device=R.device),
+        )
     perm, sign = _deg1_cache[key]
     return R.index_select(-2, perm).index_select(-1, perm) * sign
 

@@ -57,8 +57,12 @@ def surface_weights(vertices, faces, skin_weights, points) -> np.ndarray:
 
 def _cache_key(vertices, faces, skin_weights, bounds: np.ndarray, resolution: int) -> str:
     h = hashlib.sha1(_CACHE_VERSION.encode())
-    for a in (_np(vertices).astype(np.float32), _np(faces).astype(np.int64), _np(skin_weights).astype(np.float32),
-              bounds.astype(np.float32)):  # fmt: skip
+    for a in (
+        _np(vertices).astype(np.float32),
+        _np(faces).astype(np.int64),
+        _np(skin_weights).astype(np.float32),
+        bounds.astype(np.float32),
+    ):
         h.update(np.ascontiguousarray(a).tobytes())
         h.update(str(a.shape).encode())
     h.update(str(resolution).encode())
@@ -149,7 +153,7 @@ class WeightField(nn.Module):
             raise ValueError(f"weight field: volume needs >= 2 nodes per axis, got shape {tuple(volume.shape)}.")
         self.register_buffer(
             "table", volume.permute(1, 2, 3, 0).reshape(-1, volume.shape[0]).contiguous(), persistent=False
-        )  # fmt: skip  [D*H*W, J], row (z * H + y) * W + x
+        )  # [D*H*W, J], row (z * H + y) * W + x
         self.register_buffer("bounds", torch.as_tensor(bounds, dtype=torch.float32).reshape(2, 3), persistent=False)
         D, H, W = self.resolution
         corners = [(z * H + y) * W + x for z in (0, 1) for y in (0, 1) for x in (0, 1)]  # [dz, dy, dx] order

@@ -80,8 +80,11 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
     elif narrow_below is None:
         width_rule = "no narrowing threshold: width as configured"
     else:
-        width_rule = (f"< {narrow_below}: width {t['corrector_narrow_hidden']}" if narrow
-                      else f">= {narrow_below}: width as configured")  # fmt: skip
+        width_rule = (
+            f"< {narrow_below}: width {t['corrector_narrow_hidden']}"
+            if narrow
+            else f">= {narrow_below}: width as configured"
+        )
     residual_need = profile.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
     num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
     cap = int(round(float(t["max_gaussians_factor"]) * num))
@@ -92,48 +95,48 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
             degree,
             f"view dependence {profile.view_dependence:.4f}",
             f"thresholds {sh_levels}, at least {floor}: degree {degree}",
-        ),  # fmt: skip
+        ),
         Choice(
             "corrector",
             None if corrector_need else "none",
             f"pose dependence {profile.pose_dependence:.4f}",
             f"{'>=' if corrector_need else '<'} {t['corrector_pose_dependence']}: "
             f"{'F_a kept' if corrector_need else 'F_a off'}",
-        ),  # fmt: skip
+        ),
         Choice(
             "scene.fold_corrector",
             not keep_corrector,
             f"pose dependence {profile.pose_dependence:.4f}",
             f"{'>=' if keep_corrector else '<'} {t['corrector_fold_pose_dependence']}: "
             f"{'F_a kept whole at compaction' if keep_corrector else 'compaction may fold F_a'}",
-        ),  # fmt: skip
+        ),
         Choice(
             "corrector.hidden",
             int(t["corrector_narrow_hidden"]) if narrow else None,
             f"pose dependence {profile.pose_dependence:.4f}",
             width_rule,
-        ),  # fmt: skip
+        ),
         Choice(
             "deformer",
             None if residual_need else "lbs",
             f"skin offset {profile.skin_offset_px:.2f} px",
             f"{'>=' if residual_need else '<'} {t['weight_residual_skin_offset_px']} px: "
             f"{'F_dw kept' if residual_need else 'F_dw off'}",
-        ),  # fmt: skip
+        ),
         Choice(
             "gaussians.num",
             num,
             f"silhouette {profile.silhouette_px:.0f} px at {profile.width}x{profile.height}",
             f"x {t['gaussians_per_silhouette_px']} per px, >= {t['min_gaussians']}",
             aliases=("profile.num_gaussians",),
-        ),  # fmt: skip
+        ),
         Choice(
             "densifier.max_gaussians",
             cap,
             f"budget {num}",
             f"x {t['max_gaussians_factor']}",
             aliases=("profile.max_gaussians",),
-        ),  # fmt: skip
+        ),
     ]
 
 

@@ -220,8 +220,9 @@ class _Sampler:
         for view in self.views:
             item = self.dataset[self.index[(f, view)]]
             cams = item.cameras
-            cam = raycast.Camera(cams.K[0].double().numpy(), cams.world_to_cam[0].double().numpy(), cams.width,
-                                 cams.height)  # fmt: skip
+            cam = raycast.Camera(
+                cams.K[0].double().numpy(), cams.world_to_cam[0].double().numpy(), cams.width, cams.height
+            )
             origins, dirs = raycast.camera_rays(cam)
             fid, bary, depth = caster.intersect(origins, dirs)
             H, W = cams.height, cams.width
@@ -304,8 +305,9 @@ def _check_profilable(dataset, body) -> None:
         )
 
 
-def profile_dataset(dataset, body, max_frames: int = 12, blur_px: float = 1.0, moving_deg: float = 5.0,
-                    progress: bool = True) -> SceneProfile:  # fmt: skip
+def profile_dataset(
+    dataset, body, max_frames: int = 12, blur_px: float = 1.0, moving_deg: float = 5.0, progress: bool = True
+) -> SceneProfile:
     """Measure a training split (see the module docstring). `body` supplies the faces and joint names."""
     from tqdm.auto import tqdm
 
@@ -393,8 +395,15 @@ def load_profile(path: Path) -> SceneProfile:
     return SceneProfile.from_dict(yaml.safe_load(Path(path).read_text()))
 
 
-def cached_profile(dataset, body, max_frames: int = 12, blur_px: float = 1.0, moving_deg: float = 5.0,
-                   force: bool = False, progress: bool = True) -> tuple[SceneProfile, Path, bool]:  # fmt: skip
+def cached_profile(
+    dataset,
+    body,
+    max_frames: int = 12,
+    blur_px: float = 1.0,
+    moving_deg: float = 5.0,
+    force: bool = False,
+    progress: bool = True,
+) -> tuple[SceneProfile, Path, bool]:
     """The profile of `dataset`, read from beside the data when it was measured before with the same settings.
     Returns (profile, its YAML path, whether it was read from that file)."""
     key = profile_key(dataset, max_frames, blur_px, moving_deg)
@@ -406,7 +415,8 @@ def cached_profile(dataset, body, max_frames: int = 12, blur_px: float = 1.0, mo
                 return profile, path, True
         except (OSError, ValueError, TypeError, KeyError):
             pass  # unreadable or from another version: measure again
-    profile = profile_dataset(dataset, body, max_frames=max_frames, blur_px=blur_px, moving_deg=moving_deg,
-                              progress=progress)  # fmt: skip
+    profile = profile_dataset(
+        dataset, body, max_frames=max_frames, blur_px=blur_px, moving_deg=moving_deg, progress=progress
+    )
     save_profile(profile, path)
     return profile, path, False

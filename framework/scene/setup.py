@@ -50,7 +50,7 @@ class SceneSetup:
                     "rule": c.rule,
                     "by_hand": c.overridden,
                     "applied": c.applied,
-                }  # fmt: skip
+                }
                 for c in self.choices
             ],
             "frozen_pose": self.frozen_pose,
@@ -78,9 +78,13 @@ def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bo
     if scene.get("profile") or scene.get("auto"):
         body = profile_body(cfg.body, train_set)
         profile, path, cached = cached_profile(
-            train_set, body, max_frames=int(scene.get("max_frames", 12)), blur_px=float(scene.get("blur_px", 1.0)),
-            moving_deg=float(scene.get("moving_deg", 5.0)), progress=progress,
-        )  # fmt: skip
+            train_set,
+            body,
+            max_frames=int(scene.get("max_frames", 12)),
+            blur_px=float(scene.get("blur_px", 1.0)),
+            moving_deg=float(scene.get("moving_deg", 5.0)),
+            progress=progress,
+        )
         setup.profile, setup.profile_path = profile, path
         print(f"[splatrig] {profile.report()}", file=sys.stderr)
         print(f"[splatrig]   profile {'read from' if cached else 'written to'} {path}", file=sys.stderr)

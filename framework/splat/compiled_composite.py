@@ -91,10 +91,12 @@ class CompiledComposite(torch.autograd.Function):
 
         T = ctx.T.copy()  # walked back to 1 by the backward
         g_acc, tail = np.empty((T.shape[0], 4)), np.empty(T.shape[0])  # [slots, 4], [slots]: T_final * dL/dT_final
-        compiled_cpu.pixels_to_slots(pixels(g_rgb, 3), pixels(g_T, 1)[:, 0], pixels(g_depth, 1)[:, 0], T, width, g_acc,
-                                     tail)  # fmt: skip
+        compiled_cpu.pixels_to_slots(
+            pixels(g_rgb, 3), pixels(g_T, 1)[:, 0], pixels(g_depth, 1)[:, 0], T, width, g_acc, tail
+        )
         grads = (np.zeros((M, 2)), np.zeros((M, 3)), np.zeros(M), np.zeros((M, 3)), np.zeros(M))
-        compiled_cpu.accumulate_backward(ctx.order, ctx.base_row, means2d, conics, opacities, colors, depths, width, T,
-                                         *ctx.log, g_acc, tail, *grads)  # fmt: skip
+        compiled_cpu.accumulate_backward(
+            ctx.order, ctx.base_row, means2d, conics, opacities, colors, depths, width, T, *ctx.log, g_acc, tail, *grads
+        )
         out = tuple(torch.from_numpy(g).to(like.dtype) for g in grads)
         return (*out, None, None, None, None, None)

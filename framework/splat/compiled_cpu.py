@@ -108,8 +108,26 @@ def _screen_covariance(Rc, rot, scales, n, uc, vc, a0, a1, eps2d, wm, t0, t1):
 
 
 @njit(cache=True, nogil=True)
-def project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far, eps2d,
-            means2d, conics, depths, half, radii, valid, cov2d):  # fmt: skip
+def project(
+    means,
+    quats,
+    scales,
+    opacities,
+    K,
+    world_to_cam,
+    width,
+    height,
+    near,
+    far,
+    eps2d,
+    means2d,
+    conics,
+    depths,
+    half,
+    radii,
+    valid,
+    cov2d,
+):
     """EWA projection of N Gaussians into C cameras, the rules of `framework.splat.projection.project_gaussians`.
 
     In: means [N, 3], quats [N, 4] (wxyz, any norm), scales [N, 3], opacities [N], K [C, 3, 3], world_to_cam
@@ -132,8 +150,9 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
             mx, my = cx + fx * u, cy + fy * v
             _unit_rotation(quats, n, rs)  # then times the scales, column by column below
             uc, vc = min(max(u, u_lo), u_hi), min(max(v, v_lo), v_hi)
-            cxx, cxy, cyy, _, _, _, det = _screen_covariance(Rc, rs, scales, n, uc, vc, fx * rz, fy * rz, eps2d, wm,
-                                                             t0, t1)  # fmt: skip
+            cxx, cxy, cyy, _, _, _, det = _screen_covariance(
+                Rc, rs, scales, n, uc, vc, fx * rz, fy * rz, eps2d, wm, t0, t1
+            )
             ok_det = det > 0
             inv = 1.0 / det if ok_det else 1.0
             means2d[c, n, 0], means2d[c, n, 1] = mx, my
@@ -146,8 +165,13 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
             hy = 0.0 if math.isnan(hy) else min(hy, _BIG)
             rx, ry = math.ceil(hx), math.ceil(hy)
             inside = mx + rx > 0 and mx - rx < width and my + ry > 0 and my - ry < height
-            finite = (math.isfinite(mx) and math.isfinite(my) and math.isfinite(cxx) and math.isfinite(cxy)
-                      and math.isfinite(cyy))  # fmt: skip
+            finite = (
+                math.isfinite(mx)
+                and math.isfinite(my)
+                and math.isfinite(cxx)
+                and math.isfinite(cxy)
+                and math.isfinite(cyy)
+            )
             radius = max(rx, ry)
             ok = in_depth and ok_det and opacities[n] >= ALPHA_MIN and inside and finite and radius > 0
             valid[c, n] = ok
@@ -157,8 +181,23 @@ def project(means, quats, scales, opacities, K, world_to_cam, width, height, nea
 
 
 @njit(cache=True, nogil=True)
-def project_backward(means, quats, scales, K, world_to_cam, width, height, eps2d, valid,
-                     g_means2d, g_conics, g_depths, g_means, g_quats, g_scales):  # fmt: skip
+def project_backward(
+    means,
+    quats,
+    scales,
+    K,
+    world_to_cam,
+    width,
+    height,
+    eps2d,
+    valid,
+    g_means2d,
+    g_conics,
+    g_depths,
+    g_means,
+    g_quats,
+    g_scales,
+):
     """The gradients of `project`'s means2d, conics and depths with respect to means, quats and scales.
 
     In: the forward's inputs and its `valid` [C, N]; g_means2d [C, N, 2], g_conics [C, N, 3], g_depths [C, N]. Out
@@ -272,8 +311,23 @@ def _row_range(my, half_y, height):
 
 
 @njit(cache=True, nogil=True)
-def accumulate(order, base_row, means2d, conics, opacities, colors, depths, half, width, height, T, acc,
-               log_slot, log_pos, log_alpha):  # fmt: skip
+def accumulate(
+    order,
+    base_row,
+    means2d,
+    conics,
+    opacities,
+    colors,
+    depths,
+    half,
+    width,
+    height,
+    T,
+    acc,
+    log_slot,
+    log_pos,
+    log_alpha,
+):
     """Front-to-back compositing of the entries `order` (indices, nearest first) into per-pixel sums.
 
     In: means2d [N, 2], conics [N, 3], opacities [N], colors [N, 3], depths [N], half [N, 2]; base_row [len(order)]
@@ -336,8 +390,27 @@ def accumulate(order, base_row, means2d, conics, opacities, colors, depths, half
 
 
 @njit(cache=True, nogil=True)
-def accumulate_backward(order, base_row, means2d, conics, opacities, colors, depths, width, T, log_slot, log_pos,
-                        log_alpha, g_acc, tail, g_means2d, g_conics, g_opacities, g_colors, g_depths):  # fmt: skip
+def accumulate_backward(
+    order,
+    base_row,
+    means2d,
+    conics,
+    opacities,
+    colors,
+    depths,
+    width,
+    T,
+    log_slot,
+    log_pos,
+    log_alpha,
+    g_acc,
+    tail,
+    g_means2d,
+    g_conics,
+    g_opacities,
+    g_colors,
+    g_depths,
+):
     """The gradients of `accumulate`'s sums (and final transmittance) with respect to every entry, in closed form.
 
     In: the forward's entries and its pair log; T [slots] the final transmittance (overwritten: walked back to 1),
@@ -398,8 +471,7 @@ def accumulate_backward(order, base_row, means2d, conics, opacities, colors, dep
         g_depths[e] += c_z
 
 
-def composite(order, means2d, conics, opacities, colors, depths, half, width, height, background,
-              rgb, alpha, depth):  # fmt: skip
+def composite(order, means2d, conics, opacities, colors, depths, half, width, height, background, rgb, alpha, depth):
     """One camera's image from its entries `order` (indices, nearest first): `accumulate`, then the background.
 
     In: means2d [N, 2], conics [N, 3], opacities [N], colors [N, 3], depths [N], half [N, 2], background [3].
@@ -407,8 +479,21 @@ def composite(order, means2d, conics, opacities, colors, depths, half, width, he
     stride = width + 1
     T = np.ones(height * stride)
     acc = np.zeros((height * stride, 4))  # r, g, b, z sums of T * alpha * value
-    accumulate(order, np.zeros(order.shape[0], dtype=np.int64), means2d, conics, opacities, colors, depths, half,
-               width, height, T, acc, *_NO_LOG)  # fmt: skip
+    accumulate(
+        order,
+        np.zeros(order.shape[0], dtype=np.int64),
+        means2d,
+        conics,
+        opacities,
+        colors,
+        depths,
+        half,
+        width,
+        height,
+        T,
+        acc,
+        *_NO_LOG,
+    )
     slots_to_pixels(acc, T, width, background, rgb.reshape(-1, 3), alpha.reshape(-1), depth.reshape(-1), True)
 
 

@@ -46,8 +46,26 @@ class _CompiledProjection(torch.autograd.Function):
         half, cov2d = np.empty((C, N, 2)), np.empty((C, N, 3))
         radii, valid = np.empty((C, N), dtype=np.int32), np.empty((C, N), dtype=np.bool_)
         m, q, s, k, w2c = inputs
-        compiled_cpu.project(m, q, s, float64_array(opacities), k, w2c, width, height, float(near), float(far), EPS2D,
-                             means2d, conics, depths, half, radii, valid, cov2d)  # fmt: skip
+        compiled_cpu.project(
+            m,
+            q,
+            s,
+            float64_array(opacities),
+            k,
+            w2c,
+            width,
+            height,
+            float(near),
+            float(far),
+            EPS2D,
+            means2d,
+            conics,
+            depths,
+            half,
+            radii,
+            valid,
+            cov2d,
+        )
         ctx.inputs, ctx.valid, ctx.size = inputs, valid, (width, height)
         ctx.set_materialize_grads(False)
         out = [torch.from_numpy(a).to(dtype) for a in (means2d, conics, depths, half, cov2d)]
@@ -66,8 +84,20 @@ class _CompiledProjection(torch.autograd.Function):
             return np.zeros(shape) if g is None else float64_array(g)
 
         grads = (np.zeros((N, 3)), np.zeros((N, 4)), np.zeros((N, 3)))
-        compiled_cpu.project_backward(m, q, s, k, w2c, *ctx.size, EPS2D, ctx.valid, given(g_means2d, (C, N, 2)),
-                                      given(g_conics, (C, N, 3)), given(g_depths, (C, N)), *grads)  # fmt: skip
+        compiled_cpu.project_backward(
+            m,
+            q,
+            s,
+            k,
+            w2c,
+            *ctx.size,
+            EPS2D,
+            ctx.valid,
+            given(g_means2d, (C, N, 2)),
+            given(g_conics, (C, N, 3)),
+            given(g_depths, (C, N)),
+            *grads,
+        )
         g_means, g_quats, g_scales = (torch.from_numpy(g).to(like.dtype) for g in grads)
         return g_means, g_quats, g_scales, None, None, None, None, None, None, None
 
@@ -89,5 +119,6 @@ def project_compiled(
     means2d, conics, depths, half, cov2d, radii, valid = _CompiledProjection.apply(
         means, quats, scales, opacities, K, world_to_cam, width, height, near, far
     )
-    return Projection(means2d=means2d, conics=conics, cov2d=cov2d, depths=depths, half_extents=half, radii=radii,
-                      valid=valid)  # fmt: skip
+    return Projection(
+        means2d=means2d, conics=conics, cov2d=cov2d, depths=depths, half_extents=half, radii=radii, valid=valid
+    )

@@ -103,14 +103,31 @@ def _basis_slope(degree, x, y, z, g):
         sy += _C2_0 * x * g[4] + _C2_1 * z * g[5] - 2.0 * _C2_2 * y * g[6] - 2.0 * _C2_4 * y * g[8]
         sz += _C2_1 * y * g[5] + 4.0 * _C2_2 * z * g[6] + _C2_3 * x * g[7]
         if degree >= 3:
-            sx += (6.0 * _C3_0 * xy * g[9] + _C3_1 * yz * g[10] - 2.0 * _C3_2 * xy * g[11] - 6.0 * _C3_3 * xz * g[12]
-                   + _C3_4 * (4.0 * zz - 3.0 * xx - yy) * g[13] + 2.0 * _C3_5 * xz * g[14]
-                   + 3.0 * _C3_6 * (xx - yy) * g[15])  # fmt: skip
-            sy += (3.0 * _C3_0 * (xx - yy) * g[9] + _C3_1 * xz * g[10] + _C3_2 * (4.0 * zz - xx - 3.0 * yy) * g[11]
-                   - 6.0 * _C3_3 * yz * g[12] - 2.0 * _C3_4 * xy * g[13] - 2.0 * _C3_5 * yz * g[14]
-                   - 6.0 * _C3_6 * xy * g[15])  # fmt: skip
-            sz += (_C3_1 * xy * g[10] + 8.0 * _C3_2 * yz * g[11] + 3.0 * _C3_3 * (2.0 * zz - xx - yy) * g[12]
-                   + 8.0 * _C3_4 * xz * g[13] + _C3_5 * (xx - yy) * g[14])  # fmt: skip
+            sx += (
+                6.0 * _C3_0 * xy * g[9]
+                + _C3_1 * yz * g[10]
+                - 2.0 * _C3_2 * xy * g[11]
+                - 6.0 * _C3_3 * xz * g[12]
+                + _C3_4 * (4.0 * zz - 3.0 * xx - yy) * g[13]
+                + 2.0 * _C3_5 * xz * g[14]
+                + 3.0 * _C3_6 * (xx - yy) * g[15]
+            )
+            sy += (
+                3.0 * _C3_0 * (xx - yy) * g[9]
+                + _C3_1 * xz * g[10]
+                + _C3_2 * (4.0 * zz - xx - 3.0 * yy) * g[11]
+                - 6.0 * _C3_3 * yz * g[12]
+                - 2.0 * _C3_4 * xy * g[13]
+                - 2.0 * _C3_5 * yz * g[14]
+                - 6.0 * _C3_6 * xy * g[15]
+            )
+            sz += (
+                _C3_1 * xy * g[10]
+                + 8.0 * _C3_2 * yz * g[11]
+                + 3.0 * _C3_3 * (2.0 * zz - xx - yy) * g[12]
+                + 8.0 * _C3_4 * xz * g[13]
+                + _C3_5 * (xx - yy) * g[14]
+            )
     return sx, sy, sz
 
 
@@ -150,8 +167,9 @@ def _colours(degree, coeffs, means, centres, out) -> None:
     basis = np.empty(16)
     for v in range(centres.shape[0]):
         for n in range(coeffs.shape[0]):
-            _fill_basis(degree, means[n, 0] - centres[v, 0], means[n, 1] - centres[v, 1], means[n, 2] - centres[v, 2],
-                        basis)  # fmt: skip
+            _fill_basis(
+                degree, means[n, 0] - centres[v, 0], means[n, 1] - centres[v, 1], means[n, 2] - centres[v, 2], basis
+            )
             for c in range(3):
                 out[v, n, c] = max(_dot(degree, basis, coeffs, n, c) + 0.5, 0.0)
 

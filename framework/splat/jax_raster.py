@@ -38,10 +38,16 @@ def quat_to_rotmat(q: jax.Array) -> jax.Array:
     qn = jnp.where(ok, q / jnp.sqrt(jnp.where(ok, n2, 1.0)), jnp.array([1.0, 0.0, 0.0, 0.0], q.dtype))
     w, x, y, z = qn[..., 0], qn[..., 1], qn[..., 2], qn[..., 3]
     rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+    ]
     return jnp.stack(rows, axis=-1).reshape(*q.shape[:-1], 3, 3)
 
 

@@ -115,10 +115,14 @@ def _monomial_tables() -> tuple[list[tuple[int, int, int]], Tensor, Tensor, Tens
 
     polynomials = [  # each basis function as {monomial: coefficient}, written out from `sh_basis`'s formulas
         {m(): SH_C0},
-        {m(y): -SH_C1}, {m(z): SH_C1}, {m(x): -SH_C1},
-        {m(x, y): SH_C2[0]}, {m(y, z): SH_C2[1]},
+        {m(y): -SH_C1},
+        {m(z): SH_C1},
+        {m(x): -SH_C1},
+        {m(x, y): SH_C2[0]},
+        {m(y, z): SH_C2[1]},
         {m(z, z): 2 * SH_C2[2], m(x, x): -SH_C2[2], m(y, y): -SH_C2[2]},
-        {m(x, z): SH_C2[3]}, {m(x, x): SH_C2[4], m(y, y): -SH_C2[4]},
+        {m(x, z): SH_C2[3]},
+        {m(x, x): SH_C2[4], m(y, y): -SH_C2[4]},
         {m(x, x, y): 3 * SH_C3[0], m(y, y, y): -SH_C3[0]},
         {m(x, y, z): SH_C3[1]},
         {m(y, z, z): 4 * SH_C3[2], m(x, x, y): -SH_C3[2], m(y, y, y): -SH_C3[2]},
@@ -126,7 +130,7 @@ def _monomial_tables() -> tuple[list[tuple[int, int, int]], Tensor, Tensor, Tens
         {m(x, z, z): 4 * SH_C3[4], m(x, x, x): -SH_C3[4], m(x, y, y): -SH_C3[4]},
         {m(x, x, z): SH_C3[5], m(y, y, z): -SH_C3[5]},
         {m(x, x, x): SH_C3[6], m(x, y, y): -3 * SH_C3[6]},
-    ]  # fmt: skip
+    ]
     index, coef = [], []
     for poly in polynomials:
         terms = list(poly.items()) + [((0, 0, 0), 0.0)] * (3 - len(poly))

@@ -23,10 +23,17 @@ from typing import Any
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 FLAGS = (
-    "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-default-apps",
-    "--mute-audio", "--hide-scrollbars",
-)  # fmt: skip
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-default-apps",
+    "--mute-audio",
+    "--hide-scrollbars",
+)
 
 
 def find_chromium() -> str | None:
@@ -61,8 +68,10 @@ class HeadlessChromium:
     def __init__(self, width: int = 1280, height: int = 800, executable: str | None = None, timeout: float = 30.0):
         self.executable = executable or find_chromium()
         if self.executable is None:
-            raise BrowserError(f"no Chromium found (looked for {', '.join(CHROMIUM_NAMES)}); on Debian/Ubuntu: "
-                               f"apt-get install chromium")  # fmt: skip
+            raise BrowserError(
+                f"no Chromium found (looked for {', '.join(CHROMIUM_NAMES)}); on Debian/Ubuntu: "
+                f"apt-get install chromium"
+            )
         self.width, self.height, self.timeout = width, height, timeout
         self._profile = tempfile.TemporaryDirectory(prefix="splatrig-chromium-")
         self._next_id = 0
@@ -80,8 +89,14 @@ class HeadlessChromium:
         from websockets.sync.client import connect
 
         profile = Path(self._profile.name)
-        cmd = [self.executable, *FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
-               f"--window-size={self.width},{self.height}", "about:blank"]  # fmt: skip
+        cmd = [
+            self.executable,
+            *FLAGS,
+            f"--user-data-dir={profile}",
+            "--remote-debugging-port=0",
+            f"--window-size={self.width},{self.height}",
+            "about:blank",
+        ]
         # its own session, so that close() can stop the helper processes it starts too
         self._proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         port_file = profile / "DevToolsActivePort"
@@ -96,8 +111,10 @@ class HeadlessChromium:
         if not pages:
             raise BrowserError("Chromium started without a page target.")
         self._ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=self.timeout)
-        self.send("Emulation.setDeviceMetricsOverride",
-                  {"width": self.width, "height": self.height, "deviceScaleFactor": 1, "mobile": False})  # fmt: skip
+        self.send(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": self.width, "height": self.height, "deviceScaleFactor": 1, "mobile": False},
+        )
 
     def close(self) -> None:
         if self._ws is not None:
@@ -136,8 +153,7 @@ class HeadlessChromium:
 
     def evaluate(self, expression: str) -> Any:
         """The value of a JavaScript expression in the page (JSON-serialisable values only)."""
-        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True,
-                                                "awaitPromise": True})  # fmt: skip
+        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True, "awaitPromise": True})
         if "exceptionDetails" in result:
             raise BrowserError(f"JavaScript error in {expression[:80]!r}: {result['exceptionDetails']}")
         return result["result"].get("value")
@@ -156,14 +172,19 @@ class HeadlessChromium:
     def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 8) -> None:
         """Press the left mouse button at (x0, y0), move to (x1, y1) and release, as a person would."""
         self.send("Input.dispatchMouseEvent", {"type": "mouseMoved", "x": x0, "y": y0})
-        self.send("Input.dispatchMouseEvent", {"type": "mousePressed", "x": x0, "y": y0, "button": "left",
-                                               "buttons": 1, "clickCount": 1})  # fmt: skip
+        self.send(
+            "Input.dispatchMouseEvent",
+            {"type": "mousePressed", "x": x0, "y": y0, "button": "left", "buttons": 1, "clickCount": 1},
+        )
         for i in range(1, steps + 1):
             x, y = x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps
-            self.send("Input.dispatchMouseEvent", {"type": "mouseMoved", "x": x, "y": y, "button": "left",
-                                                   "buttons": 1})  # fmt: skip
-        self.send("Input.dispatchMouseEvent", {"type": "mouseReleased", "x": x1, "y": y1, "button": "left",
-                                               "buttons": 0, "clickCount": 1})  # fmt: skip
+            self.send(
+                "Input.dispatchMouseEvent", {"type": "mouseMoved", "x": x, "y": y, "button": "left", "buttons": 1}
+            )
+        self.send(
+            "Input.dispatchMouseEvent",
+            {"type": "mouseReleased", "x": x1, "y": y1, "button": "left", "buttons": 0, "clickCount": 1},
+        )
 
     def click(self, x: float, y: float) -> None:
         self.drag(x, y, x, y, steps=1)

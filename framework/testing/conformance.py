@@ -397,9 +397,15 @@ def test_empty_scene(backend: Rasterizer, device: str) -> None:
     bg = torch.tensor([0.2, 0.4, 0.6], device=device)
     z = torch.zeros(0, 3, device=device, requires_grad=True)
     out = backend.render(
-        z, torch.zeros(0, 4, device=device), torch.zeros(0, 3, device=device), torch.zeros(0, device=device),
-        torch.zeros(0, 1, 3, device=device), cams, sh_degree=0, background=bg,
-    )  # fmt: skip
+        z,
+        torch.zeros(0, 4, device=device),
+        torch.zeros(0, 3, device=device),
+        torch.zeros(0, device=device),
+        torch.zeros(0, 1, 3, device=device),
+        cams,
+        sh_degree=0,
+        background=bg,
+    )
     assert out.rgb.shape == (1, H, W, 3) and out.alpha.shape == (1, H, W, 1)
     assert out.means2d.shape == (1, 0, 2) and out.radii.shape == (1, 0)
     torch.testing.assert_close(out.rgb, bg.expand(1, H, W, 3))
@@ -597,8 +603,16 @@ EXTREME_W, EXTREME_H, EXTREME_F = 16, 12, 20.0
 EXTREME_VALUE_TOL = 2e-4  # float32 vs the float64 reference, per pixel (rgb, alpha; depth relative to its scale)
 EXTREME_JUMP = 5 * ALPHA_MIN  # a pair within rounding of the 1/255 cut: one colour (<= 5) times 1/255
 EXTREME_GRAD_RTOL = 2e-3  # relative L2 error of each float32 gradient vs float64 (compared when no pixel jumped)
-POSITIONS = ("inside", "behind", "camera_centre", "at_near", "just_inside_near", "beyond_far", "far_outside",
-             "covering")  # fmt: skip
+POSITIONS = (
+    "inside",
+    "behind",
+    "camera_centre",
+    "at_near",
+    "just_inside_near",
+    "beyond_far",
+    "far_outside",
+    "covering",
+)
 QUAT_NORMS = (0.0, 1e-30, 1e-20, 1e-8, 1e-3, 1.0, 1e3)
 # A conic formed as 1 / (a c - b^2) of a float32 screen covariance with condition number kappa carries a relative
 # error of about 2 kappa u (u = eps32 / 2, the determinant's cancellation). The opacity o exp(-sigma) then moves by at
@@ -678,8 +692,9 @@ def screen_condition_number(scene: Scene) -> float:
     worst = 1.0
     with torch.no_grad():
         for g in range(scene.means.shape[0]):
-            z, _, cov = _project_one(scene.means[g], scene.quats[g], scene.scales[g], c.K[0], c.world_to_cam[0],
-                                     c.width, c.height)  # fmt: skip
+            z, _, cov = _project_one(
+                scene.means[g], scene.quats[g], scene.scales[g], c.K[0], c.world_to_cam[0], c.width, c.height
+            )
             eig = torch.linalg.eigvalsh(cov)
             if NEAR_PLANE < float(z) < FAR_PLANE and float(eig[0]) > 0:
                 worst = max(worst, float(eig[1] / eig[0]))
@@ -704,8 +719,10 @@ def extreme_tolerances(backend: Rasterizer, scene: Scene) -> tuple[float, float]
     if not backend.conic_from_float32_covariance:
         return EXTREME_VALUE_TOL, EXTREME_GRAD_RTOL
     kappa_eps = screen_condition_number(scene) * torch.finfo(torch.float32).eps
-    return (EXTREME_VALUE_TOL + CONIC_VALUE_PER_KAPPA_EPS * kappa_eps,
-            EXTREME_GRAD_RTOL + CONIC_GRAD_PER_KAPPA_EPS * kappa_eps)  # fmt: skip
+    return (
+        EXTREME_VALUE_TOL + CONIC_VALUE_PER_KAPPA_EPS * kappa_eps,
+        EXTREME_GRAD_RTOL + CONIC_GRAD_PER_KAPPA_EPS * kappa_eps,
+    )
 
 
 def check_extreme_scene(backend: Rasterizer, device: str, scene: Scene) -> None:
@@ -786,7 +803,7 @@ def _stack_scene(opacity: float) -> Scene:
             torch.eye(4, dtype=f64)[None],
             1,
             1,
-        ),  # fmt: skip
+        ),
         0,
     )
 
@@ -876,8 +893,9 @@ print(f"grown_gib={grown:.2f} err={err:.3g}")
 def test_4096_image_in_bounded_memory(backend_name: str, device: str) -> None:
     """A 4096 x 4096 render with a Gaussian covering the whole image (16.8 M pairs from it alone) stays finite, needs
     under 3 GiB more than the process held before (row bands), and matches the float64 brute force."""
-    proc = subprocess.run([sys.executable, "-c", _HUGE_RENDER, backend_name, device], capture_output=True, text=True,
-                          timeout=1800)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", _HUGE_RENDER, backend_name, device], capture_output=True, text=True, timeout=1800
+    )
     if proc.returncode != 0 and "unavailable" in proc.stderr:
         pytest.skip(proc.stderr.strip().splitlines()[-1])
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -21,8 +21,10 @@ RENDER_FPS = "(document.body.innerText.match(/([0-9.]+) fps/) || [null, 0])[1] *
 CLOSE_NOTIFICATIONS = "document.querySelectorAll('.mantine-Notification-closeButton').forEach(b => b.click())"
 
 # JavaScript: x of the control panel's left edge (the leftmost visible widget label), in CSS pixels
-PANEL_LEFT = ("Math.min(...Array.from(document.querySelectorAll('label')).map(l => l.getBoundingClientRect().left)"
-              ".filter(x => x > 0))")  # fmt: skip
+PANEL_LEFT = (
+    "Math.min(...Array.from(document.querySelectorAll('label')).map(l => l.getBoundingClientRect().left)"
+    ".filter(x => x > 0))"
+)
 
 # JavaScript template: [track left, track right, thumb x, thumb y, value] of the viewer slider labelled {label!r}
 SLIDER = """(() => {{
@@ -67,13 +69,24 @@ def free_port() -> int:
 
 
 @contextmanager
-def running_viewer(ckpt: str | Path, *overrides: str, env: dict[str, str] | None = None, cwd: str | Path | None = None,
-                   timeout: float = 180.0) -> Iterator[str]:  # fmt: skip
+def running_viewer(
+    ckpt: str | Path,
+    *overrides: str,
+    env: dict[str, str] | None = None,
+    cwd: str | Path | None = None,
+    timeout: float = 180.0,
+) -> Iterator[str]:
     """Start the viewer on a free localhost port, yield its URL once it serves, stop it afterwards."""
     port = free_port()
     cmd = [sys.executable, "-m", "framework.view", f"ckpt={ckpt}", f"port={port}", *overrides]
-    proc = subprocess.Popen(cmd, env=dict(env or os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, cwd=cwd)  # fmt: skip
+    proc = subprocess.Popen(
+        cmd,
+        env=dict(env or os.environ, PYTHONUNBUFFERED="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=cwd,
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + timeout

@@ -25,8 +25,14 @@ POSE_AXES = ("x", "y", "z")
 
 
 class ViewerApp:
-    def __init__(self, session: ViewerSession, host: str = "127.0.0.1", port: int = 8080, max_side: int = 384,
-                 view: tuple[np.ndarray, float, float] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        session: ViewerSession,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        max_side: int = 384,
+        view: tuple[np.ndarray, float, float] | None = None,
+    ) -> None:
         import viser
 
         self.session = session
@@ -165,9 +171,11 @@ class ViewerApp:
             client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
         stats = self.session.last
         fps = 1.0 / max(stats.seconds, 1e-6)
-        self.status.content = (f"**{fps:.1f}** fps · **{stats.num_gaussians}** Gaussians · "
-                               f"{stats.width}×{stats.height} px · {self.session.backend} · "
-                               f"frames served: {stats.served}")  # fmt: skip
+        self.status.content = (
+            f"**{fps:.1f}** fps · **{stats.num_gaussians}** Gaussians · "
+            f"{stats.width}×{stats.height} px · {self.session.backend} · "
+            f"frames served: {stats.served}"
+        )
 
     def _advance(self, elapsed: float) -> None:
         s = self.session

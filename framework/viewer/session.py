@@ -190,6 +190,7 @@ class ViewerSession:
             rgb = render_rgb(self.module, cameras, pose, root, frame_id)[0]
             image = to_uint8(rgb)
             self.served += 1
-            self.last = FrameStats(time.perf_counter() - start, self.avatar.gaussians.num, cameras.width,
-                                   cameras.height, self.served)  # fmt: skip
+            self.last = FrameStats(
+                time.perf_counter() - start, self.avatar.gaussians.num, cameras.width, cameras.height, self.served
+            )
             return image

@@ -64,13 +64,28 @@ PHENOTYPE_DEFAULTS = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.5, "
 # Kept bones of the reduced skeleton (Anny labels), listed in Anny's bone order.
 REDUCED_JOINTS: tuple[str, ...] = (
     "root",
-    "upperleg01.L", "lowerleg01.L", "foot.L",
-    "upperleg01.R", "lowerleg01.R", "foot.R",
-    "spine05", "spine04", "spine03", "spine02", "spine01",
-    "clavicle.L", "upperarm01.L", "lowerarm01.L", "wrist.L",
-    "clavicle.R", "upperarm01.R", "lowerarm01.R", "wrist.R",
-    "neck01", "head",
-)  # fmt: skip
+    "upperleg01.L",
+    "lowerleg01.L",
+    "foot.L",
+    "upperleg01.R",
+    "lowerleg01.R",
+    "foot.R",
+    "spine05",
+    "spine04",
+    "spine03",
+    "spine02",
+    "spine01",
+    "clavicle.L",
+    "upperarm01.L",
+    "lowerarm01.L",
+    "wrist.L",
+    "clavicle.R",
+    "upperarm01.R",
+    "lowerarm01.R",
+    "wrist.R",
+    "neck01",
+    "head",
+)
 
 
 def anny_version() -> str:
@@ -207,8 +222,9 @@ class AnnyBody(BodyModel):
         if skeleton not in ("reduced", "full"):
             raise ValueError(f"anny body: skeleton must be 'reduced' or 'full'; got {skeleton!r}.")
         self.skeleton = skeleton
-        self.phenotype = _phenotype(gender=gender, age=age, muscle=muscle, weight=weight, height=height,
-                                    proportions=proportions)  # fmt: skip
+        self.phenotype = _phenotype(
+            gender=gender, age=age, muscle=muscle, weight=weight, height=height, proportions=proportions
+        )
         a = load_anny_asset(self.phenotype)
         labels = [str(x) for x in a["bone_labels"]]
         full_parents = [int(p) for p in a["parents"]]

@@ -60,8 +60,14 @@ class SMPLXBody(SmplFamilyBody):
         pose_blendshapes: bool = False,
         pose_input: str | list[str] = "body",
     ) -> None:
-        super().__init__(model_path=model_path, model_type="smplx", gender=gender, betas=betas, num_betas=num_betas,
-                         pose_blendshapes=pose_blendshapes)  # fmt: skip
+        super().__init__(
+            model_path=model_path,
+            model_type="smplx",
+            gender=gender,
+            betas=betas,
+            num_betas=num_betas,
+            pose_blendshapes=pose_blendshapes,
+        )
         if self.num_joints != NUM_SMPLX_JOINTS:
             raise ValueError(
                 f"smplx body: {self.model_file} has {self.num_joints} joints, expected SMPL-X's {NUM_SMPLX_JOINTS}; "

@@ -90,8 +90,11 @@ class EasyMocapDataset(SequenceDataset):
             _ANNOUNCED.add(key)
             others = [d for d in seq.available_mask_dirs() if d != seq.mask_dir]
             also = f" ({', '.join(others)}/ also present; data.mask_dir picks)" if others else ""
-            print(f"[splatrig] easymocap: masks from {seq.mask_dir}/{also}, parameters from "
-                  f"{seq.params_dir.relative_to(seq.root)}/", file=sys.stderr)  # fmt: skip
+            print(
+                f"[splatrig] easymocap: masks from {seq.mask_dir}/{also}, parameters from "
+                f"{seq.params_dir.relative_to(seq.root)}/",
+                file=sys.stderr,
+            )
         names = seq.camera_names
         test = view_indices(test_views, names, "test_views")
         train = view_indices(train_views, names, "train_views")

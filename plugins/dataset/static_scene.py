@@ -47,9 +47,12 @@ class StaticSceneDataset(MultiViewDataset):
         if split not in _SPLITS:
             raise ValueError(f"dataset static_scene: unknown split '{split}'; expected one of {', '.join(_SPLITS)}.")
         settings = StaticSceneSettings(
-            resolution=int(resolution), num_train_views=int(num_train_views), num_test_views=int(num_test_views),
-            seed=int(seed), supersample=int(supersample),
-        )  # fmt: skip
+            resolution=int(resolution),
+            num_train_views=int(num_train_views),
+            num_test_views=int(num_test_views),
+            seed=int(seed),
+            supersample=int(supersample),
+        )
         self.path = ensure_static_scene(settings, root)
         meta = load_meta(self.path)
         cams = meta["cameras"]

@@ -55,14 +55,23 @@ class SyntheticStudioDataset(ZjuMocapDataset):
     ) -> None:
         from framework.data.studio import StudioSettings, generate
 
-        settings = StudioSettings(resolution=int(resolution), views=int(views), frames=int(frames), seed=int(seed),
-                                  body=str(body), skeleton=str(skeleton), supersample=int(supersample),
-                                  pose_noise_deg=float(pose_noise_deg), root_noise_m=float(root_noise_m),
-                                  mask_error_px=float(mask_error_px), garment=str(garment),
-                                  garment_lag=float(garment_lag),
-                                  subject_height_fraction=None if subject_height_fraction is None
-                                  else float(subject_height_fraction),
-                                  motion=str(motion), look=str(look))  # fmt: skip
+        settings = StudioSettings(
+            resolution=int(resolution),
+            views=int(views),
+            frames=int(frames),
+            seed=int(seed),
+            body=str(body),
+            skeleton=str(skeleton),
+            supersample=int(supersample),
+            pose_noise_deg=float(pose_noise_deg),
+            root_noise_m=float(root_noise_m),
+            mask_error_px=float(mask_error_px),
+            garment=str(garment),
+            garment_lag=float(garment_lag),
+            subject_height_fraction=None if subject_height_fraction is None else float(subject_height_fraction),
+            motion=str(motion),
+            look=str(look),
+        )
         path = generate(settings, root, workers=int(workers), progress=True)
         meta = json.loads((path / "studio.json").read_text())
         if views < 2:

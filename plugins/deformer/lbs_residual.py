@@ -32,8 +32,15 @@ class LBSResidualDeformer(LBSDeformerBase):
 
     RESIDUALS = ("additive", "additive_normalised", "softmax")
 
-    def __init__(self, hidden: int = 32, layers: int = 4, num_freqs: int = 4, eps: float = 1e-6,
-                 residual: str = "softmax", **kwargs) -> None:  # fmt: skip
+    def __init__(
+        self,
+        hidden: int = 32,
+        layers: int = 4,
+        num_freqs: int = 4,
+        eps: float = 1e-6,
+        residual: str = "softmax",
+        **kwargs,
+    ) -> None:
         super().__init__(**kwargs)
         if residual not in self.RESIDUALS:
             raise ValueError(f"deformer 'lbs_residual': residual must be one of {self.RESIDUALS}, got '{residual}'.")

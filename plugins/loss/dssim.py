@@ -36,8 +36,9 @@ class DSSIMLoss(Loss):
 
     FORMS = {"full": 1.0, "half": 0.5}
 
-    def __init__(self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True,
-                 form: str = "full") -> None:  # fmt: skip
+    def __init__(
+        self, window_size: int = 11, foreground_only: bool = False, compiled: bool = True, form: str = "full"
+    ) -> None:
         super().__init__()
         if window_size < 1 or window_size % 2 == 0:
             raise ValueError(f"loss 'dssim': window_size must be a positive odd number, got {window_size}.")

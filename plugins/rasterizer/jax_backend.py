@@ -258,8 +258,15 @@ def build_pairs(
     alpha test, so the enumeration's conservative margin only costs a few extra pairs."""
     C, Np = depths.shape
     flat, cam, gid = depth_ordered_entries(radii > 0, depths)  # [M] visible entries in depth order
-    ent, pix = enumerate_pairs(means2d.reshape(-1, 2)[flat], conics.reshape(-1, 3)[flat], opacities[gid],
-                               half.reshape(-1, 2)[flat], cam, width, height)  # fmt: skip
+    ent, pix = enumerate_pairs(
+        means2d.reshape(-1, 2)[flat],
+        conics.reshape(-1, 3)[flat],
+        opacities[gid],
+        half.reshape(-1, 2)[flat],
+        cam,
+        width,
+        height,
+    )
     if pix.shape[0] >= 2**31 or C * height * width >= 2**31:
         raise ValueError(
             f"jax rasterizer: {pix.shape[0]} (Gaussian, pixel) pairs for {C} cameras of {width}x{height} exceed the "

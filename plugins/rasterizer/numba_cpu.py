@@ -71,12 +71,14 @@ class _CompiledTraining(TorchRefRasterizer):
         height: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
         if not cpu_float(means2d):
-            return super().composite_entries(means2d, conics, opacities, colors, depths, cam, half, num_cameras,
-                                             width, height)  # fmt: skip
+            return super().composite_entries(
+                means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height
+            )
         from framework.splat.compiled_composite import CompiledComposite  # lazy: numba's import (module docstring)
 
-        return CompiledComposite.apply(means2d, conics, opacities, colors, depths, half.detach(), cam, num_cameras,
-                                       width, height)  # fmt: skip
+        return CompiledComposite.apply(
+            means2d, conics, opacities, colors, depths, half.detach(), cam, num_cameras, width, height
+        )
 
 
 def _numba_unavailable() -> str | None:
@@ -129,8 +131,18 @@ class NumbaRasterizer(Rasterizer):
     ) -> RenderOutput:
         check_render_inputs(means, quats, scales, opacities, sh, sh_degree)
         if not self.compiled((means, quats, scales, opacities, sh)) or cameras.device.type != "cpu":
-            return self._reference.render(means, quats, scales, opacities, sh, cameras, sh_degree=sh_degree,
-                                          background=background, near=near, far=far)  # fmt: skip
+            return self._reference.render(
+                means,
+                quats,
+                scales,
+                opacities,
+                sh,
+                cameras,
+                sh_degree=sh_degree,
+                background=background,
+                near=near,
+                far=far,
+            )
         # here, not at module level: plugin discovery imports every backend, and numba's import costs about 0.5 s
         from framework.splat import compiled_cpu
         from framework.splat.compiled_cpu import float64_array as _np64
@@ -145,9 +157,26 @@ class NumbaRasterizer(Rasterizer):
         radii = np.empty((C, N), dtype=np.int32)  # [C, N]
         valid = np.empty((C, N), dtype=np.bool_)  # [C, N]
         opacity = _np64(opacities)  # [N]
-        compiled_cpu.project(_np64(means), _np64(quats), _np64(scales), opacity, _np64(cameras.K),
-                             _np64(cameras.world_to_cam), W, H, float(near), float(far), EPS2D,
-                             means2d, conics, depths, half, radii, valid, np.empty((C, N, 3)))  # fmt: skip
+        compiled_cpu.project(
+            _np64(means),
+            _np64(quats),
+            _np64(scales),
+            opacity,
+            _np64(cameras.K),
+            _np64(cameras.world_to_cam),
+            W,
+            H,
+            float(near),
+            float(far),
+            EPS2D,
+            means2d,
+            conics,
+            depths,
+            half,
+            radii,
+            valid,
+            np.empty((C, N, 3)),
+        )
         centers = cameras.centers().to(dtype)  # [C, 3]
         colors = sh_colours_compiled(sh_degree, sh, means, centers)  # [C, N, 3] float64
         bg = np.zeros(3) if background is None else _np64(background.reshape(3))  # [3]
@@ -158,8 +187,21 @@ class NumbaRasterizer(Rasterizer):
         for c in range(C):
             visible = np.flatnonzero(valid[c])
             order = visible[np.argsort(depths[c, visible], kind="stable")]  # nearest first, ties in Gaussian order
-            compiled_cpu.composite(order, means2d[c], conics[c], opacity, colors[c], depths[c], half[c], W, H, bg,
-                                   rgb[c], alpha[c], depth[c])  # fmt: skip
+            compiled_cpu.composite(
+                order,
+                means2d[c],
+                conics[c],
+                opacity,
+                colors[c],
+                depths[c],
+                half[c],
+                W,
+                H,
+                bg,
+                rgb[c],
+                alpha[c],
+                depth[c],
+            )
         out = (torch.from_numpy(a).to(dtype) for a in (rgb, alpha[..., None], depth[..., None], means2d))
         rgb_t, alpha_t, depth_t, means2d_t = out
         return RenderOutput(rgb=rgb_t, alpha=alpha_t, depth=depth_t, means2d=means2d_t, radii=torch.from_numpy(radii))

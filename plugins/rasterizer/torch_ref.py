@@ -309,15 +309,29 @@ class TorchRefRasterizer(Rasterizer):
         if torch.is_autocast_enabled(means.device.type):
             # autocast would run the projection's products in half precision: the contract computes in float32
             with torch.autocast(means.device.type, enabled=False):
-                return self.render(means, quats, scales, opacities, sh, cameras, sh_degree=sh_degree,
-                                   background=background, near=near, far=far)  # fmt: skip
+                return self.render(
+                    means,
+                    quats,
+                    scales,
+                    opacities,
+                    sh,
+                    cameras,
+                    sh_degree=sh_degree,
+                    background=background,
+                    near=near,
+                    far=far,
+                )
         if means.dtype in (torch.float16, torch.bfloat16):
             # Half precision cannot hold transmittances near 1e-4 or conics of small Gaussians: render in float32
             # and hand back the caller's dtype (gradients flow through the casts).
             out = self.render(
-                *(t.float() for t in (means, quats, scales, opacities, sh)), cameras, sh_degree=sh_degree,
-                background=None if background is None else background.float(), near=near, far=far,
-            )  # fmt: skip
+                *(t.float() for t in (means, quats, scales, opacities, sh)),
+                cameras,
+                sh_degree=sh_degree,
+                background=None if background is None else background.float(),
+                near=near,
+                far=far,
+            )
             half = means.dtype
             return RenderOutput(out.rgb.to(half), out.alpha.to(half), out.depth.to(half), out.means2d, out.radii)
         C, H, W = cameras.num, cameras.height, cameras.width
@@ -416,24 +430,34 @@ class TorchRefRasterizer(Rasterizer):
         dtype, dev = means.dtype, means.device
         out = BlendWeights.zeros(N, dev, dtype)
         proj = project_gaussians(
-            means, quats, scales, opacities, cameras.K.to(dev, dtype), cameras.world_to_cam.to(dev, dtype), W, H,
-            near=near, far=far,
-        )  # fmt: skip
+            means,
+            quats,
+            scales,
+            opacities,
+            cameras.K.to(dev, dtype),
+            cameras.world_to_cam.to(dev, dtype),
+            W,
+            H,
+            near=near,
+            far=far,
+        )
         flat, cam, gid = depth_ordered_entries(proj.valid, proj.depths)  # [M] each
         if flat.numel() == 0:
             return out
         means2d = proj.means2d.reshape(-1, 2).index_select(0, flat)
         conics = proj.conics.reshape(-1, 3).index_select(0, flat)
         op = opacities.index_select(0, gid)
-        ent, pix = enumerate_pairs(means2d, conics, op, proj.half_extents.reshape(-1, 2).index_select(0, flat), cam,
-                                   W, H)  # fmt: skip
+        ent, pix = enumerate_pairs(
+            means2d, conics, op, proj.half_extents.reshape(-1, 2).index_select(0, flat), cam, W, H
+        )
         if pix.numel() == 0:
             return out
         ent, pix = sort_pairs_by_pixel(ent, pix, C * H * W)
         my = means2d[:, 1] + cam.to(dtype) * H
         px, py = pixel_centres(C * H * W, W, dtype, dev)
-        _, _, alpha = pair_alpha(means2d[:, 0], my, *conics.unbind(1), op, ent, torch.take(px, pix),
-                                 torch.take(py, pix))  # fmt: skip
+        _, _, alpha = pair_alpha(
+            means2d[:, 0], my, *conics.unbind(1), op, ent, torch.take(px, pix), torch.take(py, pix)
+        )
         alpha, _, T, _ = pair_transmittance(alpha, pix, C * H * W)
         w = (T * alpha).double()  # [P] 0 where the pair does not contribute
         g = torch.take(gid, ent)  # [P]

@@ -33,13 +33,17 @@ def read_motion_file(
     try:
         motion = _read_motion(Path(path), rig, num_joints, reference_root)
     except (OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
-        raise SplatrigError(f"motion={path}: cannot be read ({type(exc).__name__}: the file is truncated or not in "
-                            f"the format its suffix says); re-export it.") from None  # fmt: skip
+        raise SplatrigError(
+            f"motion={path}: cannot be read ({type(exc).__name__}: the file is truncated or not in "
+            f"the format its suffix says); re-export it."
+        ) from None
     for name, values in (("poses", motion.poses), ("roots", motion.roots)):
         if values is not None and not np.isfinite(values).all():
             frame = int(np.flatnonzero((~np.isfinite(values.reshape(values.shape[0], -1))).any(1))[0])
-            raise SplatrigError(f"motion={path}: `{name}` of frame {frame} holds a non-finite value; expected "
-                                f"finite numbers (re-export the motion or drop that frame).")  # fmt: skip
+            raise SplatrigError(
+                f"motion={path}: `{name}` of frame {frame} holds a non-finite value; expected "
+                f"finite numbers (re-export the motion or drop that frame)."
+            )
     return motion
 
 
@@ -51,13 +55,17 @@ def _read_motion(path: Path, rig: Rig | None, num_joints: int, reference_root: n
     from framework.data.motion_files.studio import read_pose_file
 
     if not path.exists():
-        raise SplatrigError(f"motion={path}: no such file or folder; expected a pose file (.npz/.npy), a params "
-                            f"folder, an AMASS-layout .npz or a .bvh file.")  # fmt: skip
+        raise SplatrigError(
+            f"motion={path}: no such file or folder; expected a pose file (.npz/.npy), a params "
+            f"folder, an AMASS-layout .npz or a .bvh file."
+        )
 
     def needs_rig() -> Rig:
         if rig is None:
-            raise SplatrigError(f"motion={path}: retargeting needs the body's joints named (pelvis, hips, knees, "
-                                f"shoulders; framework.data.motions.SEMANTIC), and this body's are not.")  # fmt: skip
+            raise SplatrigError(
+                f"motion={path}: retargeting needs the body's joints named (pelvis, hips, knees, "
+                f"shoulders; framework.data.motions.SEMANTIC), and this body's are not."
+            )
         return rig
 
     if path.suffix.lower() == ".bvh":
@@ -73,10 +81,13 @@ def _read_motion(path: Path, rig: Rig | None, num_joints: int, reference_root: n
                 own = target.rest_joints[[target.joint_names.index(n) for n in smpl_names]]
             return retarget(read_amass(path, own), target, reference_root)
         if "poses" not in keys:
-            raise SplatrigError(f"motion={path}: an .npz without `poses`; expected our pose file (`poses` "
-                                f"[F, J, 3]) or the AMASS layout (`poses`, `trans`, `mocap_framerate`); found "
-                                f"{keys}.")  # fmt: skip
+            raise SplatrigError(
+                f"motion={path}: an .npz without `poses`; expected our pose file (`poses` "
+                f"[F, J, 3]) or the AMASS layout (`poses`, `trans`, `mocap_framerate`); found "
+                f"{keys}."
+            )
     if path.is_dir() or path.suffix in (".npz", ".npy"):
         return read_pose_file(path, num_joints)
-    raise SplatrigError(f"motion={path}: unknown motion file type '{path.suffix}'; expected .npz, .npy, .bvh or a "
-                        f"params folder.")  # fmt: skip
+    raise SplatrigError(
+        f"motion={path}: unknown motion file type '{path.suffix}'; expected .npz, .npy, .bvh or a params folder."
+    )

@@ -58,8 +58,10 @@ def read_amass(path: str | Path, rest_positions: np.ndarray | None = None) -> So
     with np.load(path, allow_pickle=False) as data:
         keys = list(data.files)
         if not is_amass_file(keys):
-            raise SplatrigError(f"motion file {path}: not in the AMASS layout; expected `poses` [F, 3J] and `trans` "
-                                f"[F, 3] (found keys {keys}).")  # fmt: skip
+            raise SplatrigError(
+                f"motion file {path}: not in the AMASS layout; expected `poses` [F, 3J] and `trans` "
+                f"[F, 3] (found keys {keys})."
+            )
         if "poses" in keys:
             poses = np.asarray(data["poses"], dtype=np.float64)
         else:
@@ -67,8 +69,10 @@ def read_amass(path: str | Path, rest_positions: np.ndarray | None = None) -> So
         trans = np.asarray(data["trans"], dtype=np.float64)
         fps = next((float(data[k]) for k in FPS_KEYS if k in keys), None)
     if poses.ndim != 2 or poses.shape[1] < 3 * BODY_JOINTS or trans.shape != (poses.shape[0], 3):
-        raise SplatrigError(f"motion file {path}: `poses` has shape {poses.shape} and `trans` {trans.shape}; expected "
-                            f"[F, >= {3 * BODY_JOINTS}] and [F, 3].")  # fmt: skip
+        raise SplatrigError(
+            f"motion file {path}: `poses` has shape {poses.shape} and `trans` {trans.shape}; expected "
+            f"[F, >= {3 * BODY_JOINTS}] and [F, 3]."
+        )
     F = poses.shape[0]
     local = Rotation.from_rotvec(poses[:, : 3 * BODY_JOINTS].reshape(-1, 3)).as_matrix().reshape(F, BODY_JOINTS, 3, 3)
     glob = np.empty_like(local)

@@ -92,8 +92,9 @@ def read_bvh(path: str | Path) -> SourceMotion:
     try:
         container = bvhio.readAsBvh(str(path))
     except (SyntaxError, ValueError, IndexError) as exc:
-        raise SplatrigError(f"motion file {path}: not a readable BVH file ({exc}); expected HIERARCHY ... MOTION.") \
-            from exc  # fmt: skip
+        raise SplatrigError(
+            f"motion file {path}: not a readable BVH file ({exc}); expected HIERARCHY ... MOTION."
+        ) from exc
     layout = container.Root.layout()  # [(joint, index, depth)] depth-first
     joints = [j for j, _, _ in layout]
     parents, stack = [], []  # stack[d] = index of the last joint seen at depth d
@@ -103,8 +104,10 @@ def read_bvh(path: str | Path) -> SourceMotion:
         stack.append(i)
     F, S = int(container.FrameCount), len(joints)
     if F < 1 or any(len(j.Keyframes) != F for j in joints):
-        raise SplatrigError(f"motion file {path}: {F} frames declared but the MOTION section holds a different "
-                            f"number of rows; expected one row of channel values per frame.")  # fmt: skip
+        raise SplatrigError(
+            f"motion file {path}: {F} frames declared but the MOTION section holds a different "
+            f"number of rows; expected one row of channel values per frame."
+        )
     offsets = np.array([[j.Offset.x, j.Offset.y, j.Offset.z] for j in joints], dtype=np.float64)  # [S, 3]
     rest = np.zeros((S, 3))
     for k in range(S):

@@ -56,8 +56,9 @@ def resample(motion: Motion, fps: float) -> Motion:
     if motion.roots is not None:
         from scipy.spatial.transform import Rotation
 
-        rot = Rotation.from_rotvec(_slerp_rotvecs(Rotation.from_matrix(motion.roots[:, :3, :3]).as_rotvec(), t_in,
-                                                  t_out)).as_matrix()  # fmt: skip
+        rot = Rotation.from_rotvec(
+            _slerp_rotvecs(Rotation.from_matrix(motion.roots[:, :3, :3]).as_rotvec(), t_in, t_out)
+        ).as_matrix()
         roots = np.tile(np.eye(4), (n_out, 1, 1))
         roots[:, :3, :3] = rot
         for axis in range(3):

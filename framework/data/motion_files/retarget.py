@@ -157,8 +157,10 @@ def retarget(src: SourceMotion, rig: Rig, reference_root: np.ndarray | None = No
         elif parents[k] >= 0:
             G_t[:, k] = G_t[:, parents[k]]
         else:
-            raise RetargetError(f"motion file {src.source}: the avatar's root joint '{rig.joint_names[k]}' has no "
-                                f"partner in the motion's skeleton.")  # fmt: skip
+            raise RetargetError(
+                f"motion file {src.source}: the avatar's root joint '{rig.joint_names[k]}' has no "
+                f"partner in the motion's skeleton."
+            )
     local = G_t.copy()
     for k in order:
         if parents[k] >= 0:

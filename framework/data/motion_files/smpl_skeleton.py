@@ -15,12 +15,24 @@ SMPL_PARENTS = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 1
 BODY_JOINTS = 22  # joints 0..21 are the same in SMPL, SMPL-H and SMPL-X (then hands / fingers / face)
 
 _LEFT_HALF = {  # (x, y, z) of the subject's left-side joints; the right side mirrors x
-    "hip": (0.06, -0.09, 0.0), "knee": (0.10, -0.47, 0.0), "ankle": (0.09, -0.87, -0.04),
-    "foot": (0.12, -0.92, 0.08), "collar": (0.07, 0.42, -0.01), "shoulder": (0.17, 0.45, -0.02),
-    "elbow": (0.43, 0.44, -0.04), "wrist": (0.69, 0.44, -0.04), "hand": (0.77, 0.44, -0.05),
-}  # fmt: skip
-_MIDDLE = {"pelvis": (0.0, 0.0, 0.0), "spine1": (0.0, 0.11, -0.01), "spine2": (0.0, 0.24, 0.0),
-           "spine3": (0.0, 0.30, 0.01), "neck": (0.0, 0.51, -0.03), "head": (0.0, 0.58, 0.02)}  # fmt: skip
+    "hip": (0.06, -0.09, 0.0),
+    "knee": (0.10, -0.47, 0.0),
+    "ankle": (0.09, -0.87, -0.04),
+    "foot": (0.12, -0.92, 0.08),
+    "collar": (0.07, 0.42, -0.01),
+    "shoulder": (0.17, 0.45, -0.02),
+    "elbow": (0.43, 0.44, -0.04),
+    "wrist": (0.69, 0.44, -0.04),
+    "hand": (0.77, 0.44, -0.05),
+}
+_MIDDLE = {
+    "pelvis": (0.0, 0.0, 0.0),
+    "spine1": (0.0, 0.11, -0.01),
+    "spine2": (0.0, 0.24, 0.0),
+    "spine3": (0.0, 0.30, 0.01),
+    "neck": (0.0, 0.51, -0.03),
+    "head": (0.0, 0.58, 0.02),
+}
 
 
 def _schematic() -> np.ndarray:

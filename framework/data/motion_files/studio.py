@@ -26,8 +26,10 @@ def _params_files(path: Path) -> list[Path]:
             break
     files = [p for p in path.glob("*.npy") if p.stem.isdigit()]
     if not files:
-        raise SplatrigError(f"motion={path}: no params files ({{i}}.npy) found; expected a ZJU-MoCap params folder "
-                            f"or a sequence folder holding params/.")  # fmt: skip
+        raise SplatrigError(
+            f"motion={path}: no params files ({{i}}.npy) found; expected a ZJU-MoCap params folder "
+            f"or a sequence folder holding params/."
+        )
     return sorted(files, key=lambda p: int(p.stem))
 
 
@@ -80,6 +82,7 @@ def read_pose_file(path: str | Path, num_joints: int) -> Motion:
             f"a motion from another skeleton."
         )
     if motion.roots is not None and motion.roots.shape != (motion.num_frames, 4, 4):
-        raise SplatrigError(f"motion={path}: roots have shape {tuple(motion.roots.shape)}, expected "
-                            f"[{motion.num_frames}, 4, 4].")  # fmt: skip
+        raise SplatrigError(
+            f"motion={path}: roots have shape {tuple(motion.roots.shape)}, expected [{motion.num_frames}, 4, 4]."
+        )
     return motion

@@ -161,8 +161,9 @@ class ZjuWriter:
             m = (np.asarray(masks[v]) != 0).astype(np.uint8) * np.uint8(self.mask_value)
             write_image(self.root / mask_dir / mask_relpath(self.image_path(frame, v)), m)
 
-    def _write_masks_and_body(self, frame: int, masks: np.ndarray, params: dict | None,
-                              vertices: np.ndarray | None) -> None:  # fmt: skip
+    def _write_masks_and_body(
+        self, frame: int, masks: np.ndarray, params: dict | None, vertices: np.ndarray | None
+    ) -> None:
         self.write_masks(frame, masks, self.mask_dir)
         n = self.file_number(frame)
         if params is not None:
