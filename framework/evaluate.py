@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from framework.atomic import atomic_path, atomic_write_text
 from framework.errors import SplatrigError, reported_as_message
-from framework.lightning.trained_model import datamodule_for, load_module
+from framework.lightning.trained_model import data_overrides, datamodule_for, load_module
 from framework.paths import beside_checkpoint
 from framework.plugins import format_table, load_plugins
 from framework.registry import METRICS
@@ -170,7 +170,7 @@ def evaluate_from_config(cfg) -> Path:
 
     check_evaluate_config(cfg)
     module = load_module(cfg.ckpt)
-    dm = datamodule_for(module)
+    dm = datamodule_for(module, data_overrides(cfg))
     splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
     metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
     out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(cfg.ckpt, "eval")

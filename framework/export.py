@@ -33,7 +33,7 @@ def main() -> int:
         from framework.errors import SplatrigError
         from framework.formats.animatable import write_package
         from framework.formats.splat_ply import write_splat_ply
-        from framework.lightning.trained_model import datamodule_for, load_module
+        from framework.lightning.trained_model import data_overrides, datamodule_for, load_module
 
         with reported_as_message():
             ckpt = str(cfg.ckpt)
@@ -63,7 +63,7 @@ def main() -> int:
                 J = 0 if body is None else body.num_joints
                 motion, frames = Motion(np.zeros((1, J, 3), np.float32), None, float(cfg.fps), "canonical"), [-1]
             else:
-                motion, frames = load_motion(module, datamodule_for(module), spec, float(cfg.fps))
+                motion, frames = load_motion(module, datamodule_for(module, data_overrides(cfg)), spec, float(cfg.fps))
                 i = int(cfg.frame)
                 if not 0 <= i < motion.num_frames:
                     raise SplatrigError(f"frame={i}: motion '{spec}' has frames 0..{motion.num_frames - 1}.")

@@ -66,12 +66,12 @@ def render_from_config(cfg) -> Path:
 
     from framework.atomic import atomic_path
     from framework.config_checks import check_render_config
-    from framework.lightning.trained_model import datamodule_for, load_module
+    from framework.lightning.trained_model import data_overrides, datamodule_for, load_module
 
     check_render_config(cfg)
     module = load_module(cfg.ckpt)
     module.eval()
-    dm = datamodule_for(module)
+    dm = datamodule_for(module, data_overrides(cfg))
     images = render_sequence(
         module,
         dm,

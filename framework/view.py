@@ -18,7 +18,7 @@ def main() -> int:
     @hydra_main("view")
     def _main(cfg: DictConfig) -> None:
         from framework.animation.camera_paths import subject_view
-        from framework.lightning.trained_model import datamodule_for, load_module
+        from framework.lightning.trained_model import data_overrides, datamodule_for, load_module
         from framework.runtime import default_device
         from framework.viewer.app import ViewerApp
         from framework.viewer.session import ViewerSession
@@ -26,7 +26,7 @@ def main() -> int:
         with reported_as_message():
             device = cfg.device or default_device()
             module = load_module(cfg.ckpt, map_location=str(device))
-            dm = datamodule_for(module)
+            dm = datamodule_for(module, data_overrides(cfg))
             session = ViewerSession(module, dm, cfg.motion, float(cfg.fps), cfg.rasterizer)
             app = ViewerApp(session, str(cfg.host), int(cfg.port), int(cfg.resolution), subject_view(module, dm))
             print(

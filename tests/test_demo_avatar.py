@@ -38,3 +38,20 @@ def test_demo_renders_the_held_out_motion_without_training() -> None:
     mse = torch.mean((rgb - batch.image) ** 2)
     psnr = float(-10 * torch.log10(mse))
     assert psnr >= MIN_NOVEL_POSE_PSNR, psnr
+
+
+@needs_asset
+def test_moved_data_is_found_with_a_root_override(tmp_path: Path) -> None:
+    """`evaluate|render|view|export ... data.root=<folder>`: the stored dataset config with its root replaced."""
+    import shutil
+
+    from framework.lightning.trained_model import datamodule_for, load_module
+
+    module = load_module(DEMO, map_location="cpu")
+    stored = datamodule_for(module).split("novel_pose")
+    moved = tmp_path / "moved"
+    shutil.copytree(stored.root, moved)
+    found = datamodule_for(module, {"root": str(moved), "test_view_every": None}).split("novel_pose")
+    assert Path(found.root).resolve() == moved.resolve() != Path(stored.root).resolve()
+    assert len(found) == len(stored)
+    torch.testing.assert_close(found[0].image, stored[0].image)  # the same frames, read from the new place

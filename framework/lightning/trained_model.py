@@ -71,13 +71,23 @@ def with_body_buffers(state: dict, module) -> dict:
     return {**state, **own} if own else state
 
 
-def datamodule_for(module):
-    """The splits of the dataset the module was trained on (rebuilt from its stored config)."""
+def data_overrides(cfg) -> dict:
+    """The `data.*` keys of an evaluate / render / view / export command line (see their configs), as a plain dict."""
+    from omegaconf import OmegaConf
+
+    node = cfg.get("data") if hasattr(cfg, "get") else None
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def datamodule_for(module, data_overrides: dict | None = None):
+    """The splits of the dataset the module was trained on, rebuilt from its stored config; `data_overrides` replace
+    stored dataset keys (the data moved: `root`; another protocol), None values left out."""
     from framework.build import build_split
     from framework.lightning.data import FrameDataModule
 
-    cfg = module.cfg
-    return FrameDataModule(functools.partial(build_split, cfg["data"]), val_split=cfg["eval"]["val_split"])
+    data = dict(module.cfg["data"])
+    data.update({k: v for k, v in (data_overrides or {}).items() if v is not None})
+    return FrameDataModule(functools.partial(build_split, data), val_split=module.cfg["eval"]["val_split"])
 
 
 def interleaved_fps(
