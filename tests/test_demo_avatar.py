@@ -51,6 +51,7 @@ def test_moved_data_is_found_with_a_root_override(tmp_path: Path) -> None:
     stored = datamodule_for(module).split("novel_pose")
     moved = tmp_path / "moved"
     shutil.copytree(stored.root, moved)
+    # a None value (a key the command line left unset) keeps the stored one
     found = datamodule_for(module, {"root": str(moved), "test_view_every": None}).split("novel_pose")
     assert Path(found.root).resolve() == moved.resolve() != Path(stored.root).resolve()
     assert len(found) == len(stored)

@@ -27,6 +27,7 @@ from it.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -63,6 +64,7 @@ TESTS_WITHOUT_GSPLAT = [
     "tests/test_batch_transfer.py",
     "tests/test_host_waits.py",
 ]
+PYTEST_GPU = [sys.executable, "-m", "pytest", "-m", "gpu", "-n", "0", "-q", "-p", "no:cacheprovider"]
 TESTS_WITH_GSPLAT = [
     "tests/test_gsplat_backend.py",
     "tests/test_pairs.py",
@@ -155,6 +157,21 @@ def _wait(run: Run, name: str, proc: subprocess.Popen, started: float, cap: floa
     run.note(name, rc=rc, seconds=round(time.monotonic() - started, 1))
     print(f"[gpu_check] {name}: rc={rc}; tail:\n{_tail(run.out / (name + '.log'))}", flush=True)
     return rc
+
+
+def _add_path(env: dict, path: Path, first: bool = True) -> None:
+    """Put `path` on the PYTHONPATH of the phases' processes."""
+    parts = [str(path), env.get("PYTHONPATH")] if first else [env.get("PYTHONPATH"), str(path)]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, parts))
+
+
+def _install(run: Run, name: str, targets: list[str], fallback: Path, env: dict, cap: float) -> None:
+    """pip install from local files only (the machine has no network), into the interpreter's environment; where that
+    is read-only, into `fallback`, which then goes on the PYTHONPATH."""
+    pip = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile", "--no-cache-dir"]
+    if run.phase(name, [*pip, *targets], cap, env) != 0:
+        run.phase(f"{name}_target", [*pip, "--target", str(fallback), *[t for t in targets if t != "-e"]], cap, env)
+        _add_path(env, fallback)
 
 
 def _versions() -> dict:
@@ -314,92 +331,16 @@ def main(argv: list[str] | None = None) -> int:
     build = studio = None
     if "setup" in phases:
         t = time.monotonic()
-        wheels = sorted((ROOT / ".whl").glob("*.whl"))
+        wheels = [str(w) for w in sorted((ROOT / ".whl").glob("*.whl"))]
         if wheels and not dry:
-            run.phase(
-                "setup",
-                [
-                    *py,
-                    "-m",
-                    "pip",
-                    "install",
-                    "-q",
-                    "--no-index",
-                    "--no-deps",
-                    "--no-compile",
-                    "--no-cache-dir",
-                    *map(str, wheels),
-                ],
-                caps["setup"],
-                env,
-            )
-        if run.summary["phases"].get("setup", {}).get("rc", 0) != 0:  # a read-only environment: beside it instead
-            run.phase(
-                "setup_target",
-                [
-                    *py,
-                    "-m",
-                    "pip",
-                    "install",
-                    "-q",
-                    "--no-index",
-                    "--no-deps",
-                    "--no-compile",
-                    "--target",
-                    str(work / "site"),
-                    *map(str, wheels),
-                ],
-                caps["setup"],
-                env,
-            )
-            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(work / "site"), env.get("PYTHONPATH")]))
-        if not dry:
-            run.phase(
-                "install",
-                [
-                    *py,
-                    "-m",
-                    "pip",
-                    "install",
-                    "-q",
-                    "--no-index",
-                    "--no-deps",
-                    "--no-build-isolation",
-                    "--no-cache-dir",
-                    "-e",
-                    str(ROOT),
-                ],
-                caps["setup"],
-                env,
-            )
-            if run.summary["phases"]["install"]["rc"] != 0:  # a built copy beside the environment instead
-                run.phase(
-                    "install_target",
-                    [
-                        *py,
-                        "-m",
-                        "pip",
-                        "install",
-                        "-q",
-                        "--no-index",
-                        "--no-deps",
-                        "--no-build-isolation",
-                        "--no-cache-dir",
-                        "--target",
-                        str(work / "site"),
-                        str(ROOT),
-                    ],
-                    caps["setup"],
-                    env,
-                )
-                env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(work / "site"), env.get("PYTHONPATH")]))
+            _install(run, "setup", wheels, work / "site", env, caps["setup"])
+        if not dry:  # the checkout itself: its entry points (plugins, configs) are package metadata
+            _install(run, "install", ["--no-build-isolation", "-e", str(ROOT)], work / "site", env, caps["setup"])
         cached = ROOT / ".gpucache" / "bodies"
         if cached.is_dir() and not os.environ.get("SPLATRIG_CACHE_DIR"):
             shutil.copytree(cached, Path(env["SPLATRIG_CACHE_DIR"]) / "bodies", dirs_exist_ok=True)
-        import importlib.util
-
         if importlib.util.find_spec("anny") is None and (ROOT / ".gpucache" / "site").is_dir():
-            env["PYTHONPATH"] = os.pathsep.join(filter(None, [env.get("PYTHONPATH"), str(ROOT / ".gpucache" / "site")]))
+            _add_path(env, ROOT / ".gpucache" / "site", first=False)
         if (ROOT / ".gpucache" / "lpips").is_dir():
             env.setdefault("SPLATRIG_LPIPS_WEIGHTS", str(ROOT / ".gpucache" / "lpips"))
         run.summary["versions"] = _versions()
@@ -420,12 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     build_started = studio_started = time.monotonic()
 
     if "tests_a" in phases:
-        run.phase(
-            "tests_a",
-            [*py, "-m", "pytest", "-m", "gpu", "-n", "0", "-q", "-p", "no:cacheprovider", *TESTS_WITHOUT_GSPLAT],
-            caps["tests_a"],
-            env,
-        )
+        run.phase("tests_a", [*PYTEST_GPU, *TESTS_WITHOUT_GSPLAT], caps["tests_a"], env)
     if build is not None:
         _wait(run, "gsplat_build", build, build_started, caps["gsplat_build"] + caps["tests_a"])
     if studio is not None:
@@ -495,12 +431,7 @@ def main(argv: list[str] | None = None) -> int:
             run.note("render", ckpt=str(ckpt), results=json.loads((run.out / "render.json").read_text()))
 
     if "tests_b" in phases:
-        run.phase(
-            "tests_b",
-            [*py, "-m", "pytest", "-m", "gpu", "-n", "0", "-q", "-p", "no:cacheprovider", *TESTS_WITH_GSPLAT],
-            caps["tests_b"],
-            env,
-        )
+        run.phase("tests_b", [*PYTEST_GPU, *TESTS_WITH_GSPLAT], caps["tests_b"], env)
 
     if "bench" in phases:
         bench_profile = "cpu" if dry else "gpu"

@@ -75,7 +75,7 @@ def data_overrides(cfg) -> dict:
     """The `data.*` keys of an evaluate / render / view / export command line (see their configs), as a plain dict."""
     from omegaconf import OmegaConf
 
-    node = cfg.get("data") if hasattr(cfg, "get") else None
+    node = cfg.get("data")
     return OmegaConf.to_container(node, resolve=True) if node is not None else {}
 
 
