@@ -164,11 +164,11 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         seed=int(cfg.seed),
     )
     train_set = dm.train_set
-    # the scene profile and `+scene=auto` may change the config, so it is resolved and saved after them
+    # the scene survey and `+scene=auto` may change the config, so it is resolved and saved after them
     user_overrides = command_line_overrides() if overrides is None else overrides
     scene = prepare_scene(cfg, train_set, user_overrides, progress=bool(cfg.callbacks.progress_bar))
     (out_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    if scene.profile is not None or scene.frozen_pose:
+    if scene.survey is not None or scene.frozen_pose:
         (out_dir / "scene.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(scene.summary())))
     container: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     poses = train_set.poses()

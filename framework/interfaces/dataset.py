@@ -25,7 +25,7 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
     """
 
     registry_name: str = ""
-    #: The folder the data is read from (scene profiles are stored beside it), or None when it has none.
+    #: The folder the data is read from (scene surveys are stored beside it), or None when it has none.
     root: Path | None = None
     #: The views (camera indices into `cameras`) this split uses.
     views: Sequence[int] = ()
@@ -56,7 +56,7 @@ class MultiViewDataset(torch.utils.data.Dataset, ABC):
         return False
 
     def vertices(self, frame: int) -> Tensor:
-        """[V, 3] the stored posed world vertices of `frame` (for checks, previews and the scene profile)."""
+        """[V, 3] the stored posed world vertices of `frame` (for checks, previews and the scene survey)."""
         raise ValueError(f"dataset '{self.registry_name}' stores no body vertices")
 
     def poses(self) -> Tensor | None:

@@ -1,4 +1,4 @@
-"""`+scene=auto`: turn a scene profile into model choices, each printed with the number it came from, each
+"""`+scene=auto`: turn a scene survey into model choices, each printed with the number it came from, each
 overridable from the command line (a key the user set is never touched).
 
 Rules (thresholds in `conf/scene/auto.yaml`, under `scene.thresholds`):
@@ -32,7 +32,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from framework.scene.profile import SceneProfile
+from framework.scene.survey import SceneSurvey
 
 COMPONENT_KEYS = ("corrector", "deformer")
 
@@ -62,19 +62,19 @@ def _show(value: Any) -> str:
     return "keep" if value is None else str(value)
 
 
-def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | None = None) -> list[Choice]:
-    """The choices a profile supports (see the module docstring); `root_joint` is never frozen."""
+def choose(survey: SceneSurvey, thresholds: dict[str, Any], root_joint: str | None = None) -> list[Choice]:
+    """The choices a survey supports (see the module docstring); `root_joint` is never frozen."""
     t = thresholds
-    still = [n for n in profile.still_joints if n != root_joint]
-    largest = max((profile.joints[n] for n in still), default=0.0)
+    still = [n for n in survey.still_joints if n != root_joint]
+    largest = max((survey.joints[n] for n in still), default=0.0)
     ranges = f"{len(still)} joints with a rotation range <= {largest:.1f}°" if still else "every joint moves"
     sh_levels = [float(x) for x in t["sh_view_dependence"]]
     floor = int(t.get("min_sh_degree", 0))
-    degree = max(floor, sum(profile.view_dependence > x for x in sh_levels))
-    corrector_need = profile.pose_dependence >= float(t["corrector_pose_dependence"])
-    keep_corrector = profile.pose_dependence >= float(t["corrector_fold_pose_dependence"])
+    degree = max(floor, sum(survey.view_dependence > x for x in sh_levels))
+    corrector_need = survey.pose_dependence >= float(t["corrector_pose_dependence"])
+    keep_corrector = survey.pose_dependence >= float(t["corrector_fold_pose_dependence"])
     narrow_below = t.get("corrector_narrow_pose_dependence")  # absent (thresholds from before it): never narrowed
-    narrow = corrector_need and narrow_below is not None and profile.pose_dependence < float(narrow_below)
+    narrow = corrector_need and narrow_below is not None and survey.pose_dependence < float(narrow_below)
     if not corrector_need:
         width_rule = "F_a off"
     elif narrow_below is None:
@@ -85,48 +85,48 @@ def choose(profile: SceneProfile, thresholds: dict[str, Any], root_joint: str | 
             if narrow
             else f">= {narrow_below}: width as configured"
         )
-    residual_need = profile.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
-    num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * profile.silhouette_px)))
+    residual_need = survey.skin_offset_px >= float(t["weight_residual_skin_offset_px"])
+    num = max(int(t["min_gaussians"]), int(round(float(t["gaussians_per_silhouette_px"]) * survey.silhouette_px)))
     cap = int(round(float(t["max_gaussians_factor"]) * num))
     return [
-        Choice("scene.frozen_joints", still, ranges, f"<= {profile.moving_deg:g}°: frozen"),
+        Choice("scene.frozen_joints", still, ranges, f"<= {survey.moving_deg:g}°: frozen"),
         Choice(
             "gaussians.sh_degree",
             degree,
-            f"view dependence {profile.view_dependence:.4f}",
+            f"view dependence {survey.view_dependence:.4f}",
             f"thresholds {sh_levels}, at least {floor}: degree {degree}",
         ),
         Choice(
             "corrector",
             None if corrector_need else "none",
-            f"pose dependence {profile.pose_dependence:.4f}",
+            f"pose dependence {survey.pose_dependence:.4f}",
             f"{'>=' if corrector_need else '<'} {t['corrector_pose_dependence']}: "
             f"{'F_a kept' if corrector_need else 'F_a off'}",
         ),
         Choice(
             "scene.fold_corrector",
             not keep_corrector,
-            f"pose dependence {profile.pose_dependence:.4f}",
+            f"pose dependence {survey.pose_dependence:.4f}",
             f"{'>=' if keep_corrector else '<'} {t['corrector_fold_pose_dependence']}: "
             f"{'F_a kept whole at compaction' if keep_corrector else 'compaction may fold F_a'}",
         ),
         Choice(
             "corrector.hidden",
             int(t["corrector_narrow_hidden"]) if narrow else None,
-            f"pose dependence {profile.pose_dependence:.4f}",
+            f"pose dependence {survey.pose_dependence:.4f}",
             width_rule,
         ),
         Choice(
             "deformer",
             None if residual_need else "lbs",
-            f"skin offset {profile.skin_offset_px:.2f} px",
+            f"skin offset {survey.skin_offset_px:.2f} px",
             f"{'>=' if residual_need else '<'} {t['weight_residual_skin_offset_px']} px: "
             f"{'F_dw kept' if residual_need else 'F_dw off'}",
         ),
         Choice(
             "gaussians.num",
             num,
-            f"silhouette {profile.silhouette_px:.0f} px at {profile.width}x{profile.height}",
+            f"silhouette {survey.silhouette_px:.0f} px at {survey.width}x{survey.height}",
             f"x {t['gaussians_per_silhouette_px']} per px, >= {t['min_gaussians']}",
             aliases=("profile.num_gaussians",),
         ),

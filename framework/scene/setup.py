@@ -1,4 +1,4 @@
-"""What a training run does with `scene.*` before it builds the model: profile the data, apply `+scene=auto`'s
+"""What a training run does with `scene.*` before it builds the model: survey the data, apply `+scene=auto`'s
 choices (leaving keys the user set alone), hold frozen joints at their mean training rotation; and log it all."""
 
 from __future__ import annotations
@@ -11,26 +11,26 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from framework.scene.auto import Choice, apply_choices, choices_table, choose, override_keys
-from framework.scene.profile import SceneProfile, cached_profile, profile_body
+from framework.scene.survey import SceneSurvey, cached_survey, survey_body
 
 
 @dataclass
 class SceneSetup:
-    profile: SceneProfile | None = None
-    profile_path: Path | None = None
+    survey: SceneSurvey | None = None
+    survey_path: Path | None = None
     choices: list[Choice] = field(default_factory=list)
     frozen_pose: dict[str, list[float]] = field(default_factory=dict)
 
     def log(self, writer: Any, step: int = 0) -> None:
-        """The profile's numbers and each choice (value and the number it came from) in TensorBoard."""
+        """The survey's numbers and each choice (value and the number it came from) in TensorBoard."""
         if writer is None or not hasattr(writer, "add_scalar"):
             return
-        if self.profile is not None:
-            p = self.profile
-            writer.add_text("scene/profile", "    " + p.report().replace("\n", "\n    "), step)
+        if self.survey is not None:
+            p = self.survey
+            writer.add_text("scene/survey", "    " + p.report().replace("\n", "\n    "), step)
             for name in ("view_dependence", "pose_dependence", "pose_noise", "skin_offset_px", "silhouette_px"):
-                writer.add_scalar(f"scene/profile/{name}", float(getattr(p, name)), step)
-            writer.add_scalar("scene/profile/moving_joints", float(len(p.moving_joints)), step)
+                writer.add_scalar(f"scene/survey/{name}", float(getattr(p, name)), step)
+            writer.add_scalar("scene/survey/moving_joints", float(len(p.moving_joints)), step)
         if self.choices:
             writer.add_text("scene/choices", choices_table(self.choices), step)
             for c in self.choices:
@@ -40,8 +40,8 @@ class SceneSetup:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "profile": None if self.profile is None else self.profile.to_dict(),
-            "profile_path": None if self.profile_path is None else str(self.profile_path),
+            "survey": None if self.survey is None else self.survey.to_dict(),
+            "survey_path": None if self.survey_path is None else str(self.survey_path),
             "choices": [
                 {
                     "key": c.key,
@@ -68,16 +68,16 @@ def command_line_overrides() -> list[str]:
 
 
 def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bool = True) -> SceneSetup:
-    """Profile (scene.profile or scene.auto), apply auto's choices to `cfg` in place (scene.auto), and compute the
+    """Survey (scene.survey or scene.auto), apply auto's choices to `cfg` in place (scene.auto), and compute the
     rotations frozen joints are held at (scene.frozen_joints, chosen or given)."""
     from framework.build import build_component
 
     scene = cfg.get("scene") or OmegaConf.create({})
     setup = SceneSetup()
     body = None
-    if scene.get("profile") or scene.get("auto"):
-        body = profile_body(cfg.body, train_set)
-        profile, path, cached = cached_profile(
+    if scene.get("survey") or scene.get("auto"):
+        body = survey_body(cfg.body, train_set)
+        survey, path, cached = cached_survey(
             train_set,
             body,
             max_frames=int(scene.get("max_frames", 12)),
@@ -85,14 +85,14 @@ def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bo
             moving_deg=float(scene.get("moving_deg", 5.0)),
             progress=progress,
         )
-        setup.profile, setup.profile_path = profile, path
-        print(f"[splatrig] {profile.report()}", file=sys.stderr)
-        print(f"[splatrig]   profile {'read from' if cached else 'written to'} {path}", file=sys.stderr)
+        setup.survey, setup.survey_path = survey, path
+        print(f"[splatrig] {survey.report()}", file=sys.stderr)
+        print(f"[splatrig]   survey {'read from' if cached else 'written to'} {path}", file=sys.stderr)
     if scene.get("auto"):
-        if setup.profile is None or body is None:
-            raise AssertionError("scene.auto needs the profile")
+        if setup.survey is None or body is None:
+            raise AssertionError("scene.auto needs the survey")
         root = body.joint_names[int(body.parents.tolist().index(-1))]
-        choices = choose(setup.profile, dict(scene.thresholds), root_joint=root)
+        choices = choose(setup.survey, dict(scene.thresholds), root_joint=root)
         setup.choices = apply_choices(cfg, choices, override_keys(overrides))
         for c in setup.choices:
             print(f"[splatrig] scene=auto: {c.line()}", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""The scene profile: what a multi-view capture of a body needs, measured from the dataset alone.
+"""The scene survey: what a multi-view capture of a body needs, measured from the dataset alone.
 
 Measured on the training split (views, frames and images a model would be fitted to):
 - joints: each joint's rotation range over the training frames (the largest geodesic angle between two frames'
@@ -36,18 +36,18 @@ import torch
 from framework.atomic import atomic_write_text
 from framework.errors import SplatrigError
 
-PROFILE_VERSION = 2
+SURVEY_VERSION = 2
 MIN_COS = 0.3  # triangles seen at a more grazing angle than ~73 degrees are left out of the colour statistics
 INTERIOR_PX = 1  # pixels closer than this (or than the low-pass reach) to a silhouette edge are left out
 DEPTH_EDGE_M = 0.05  # ... and so are pixels near a depth step larger than this (an occlusion edge inside the body)
 
 
-class ProfileError(SplatrigError):
-    """The dataset cannot be profiled (no body poses or posed vertices, or a body that does not fit them)."""
+class SurveyError(SplatrigError):
+    """The dataset cannot be surveyed (no body poses or posed vertices, or a body that does not fit them)."""
 
 
 @dataclass
-class SceneProfile:
+class SceneSurvey:
     """Measurements of one training split; `joints` maps joint name -> rotation range in degrees."""
 
     key: str
@@ -68,7 +68,7 @@ class SceneProfile:
     skin_offset_px: float
     sampled_frames: list[int] = field(default_factory=list)
     seconds: float = 0.0
-    version: int = PROFILE_VERSION
+    version: int = SURVEY_VERSION
 
     @property
     def moving_joints(self) -> list[str]:
@@ -82,7 +82,7 @@ class SceneProfile:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> SceneProfile:
+    def from_dict(cls, data: dict[str, Any]) -> SceneSurvey:
         data = dict(data)
         data["silhouette_px_per_view"] = {int(k): float(v) for k, v in data["silhouette_px_per_view"].items()}
         return cls(**data)
@@ -92,7 +92,7 @@ class SceneProfile:
         moving = ", ".join(f"{n} {self.joints[n]:.0f}°" for n in self.moving_joints) or "none"
         still = ", ".join(self.still_joints) or "none"
         lines = [
-            f"scene profile of {self.dataset}",
+            f"scene survey of {self.dataset}",
             f"  data: {self.views} training views x {self.frames} frames at {self.width}x{self.height}, body "
             f"'{self.body}'",
             f"  joints moving (> {self.moving_deg:g}° over the training frames): {moving}",
@@ -255,10 +255,10 @@ class _Sampler:
 
 
 # ------------------------------------------------------------------------------------------------- profile
-def profile_key(dataset, max_frames: int, blur_px: float, moving_deg: float) -> str:
-    """Identifies a profile: the data (root, training views and frames, resolution) and the measurement settings."""
+def survey_key(dataset, max_frames: int, blur_px: float, moving_deg: float) -> str:
+    """Identifies a survey: the data (root, training views and frames, resolution) and the measurement settings."""
     ident = {
-        "version": PROFILE_VERSION,
+        "version": SURVEY_VERSION,
         "root": str(Path(dataset.root if dataset.root is not None else "").resolve()),
         "views": [int(v) for v in dataset.views],
         "frames": [int(f) for f in dataset.frame_ids],
@@ -268,35 +268,35 @@ def profile_key(dataset, max_frames: int, blur_px: float, moving_deg: float) -> 
     return hashlib.sha1(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def profile_path(dataset, key: str) -> Path:
-    """`<dataset root>/scene_profile-<key>.yaml` beside the data, or under the project cache if that is read-only."""
+def survey_path(dataset, key: str) -> Path:
+    """`<dataset root>/scene_survey-<key>.yaml` beside the data, or under the project cache if that is read-only."""
     root = dataset.root
     if root is not None and os.access(root, os.W_OK):
-        return Path(root) / f"scene_profile-{key}.yaml"
+        return Path(root) / f"scene_survey-{key}.yaml"
     from framework.paths import cache_dir
 
     name = re.sub(r"[^A-Za-z0-9_.-]", "_", str(Path(root).resolve()) if root is not None else "dataset")
-    return cache_dir() / "scene_profiles" / name / f"scene_profile-{key}.yaml"
+    return cache_dir() / "scene_surveys" / name / f"scene_survey-{key}.yaml"
 
 
-def _check_profilable(dataset, body) -> None:
+def _check_surveyable(dataset, body) -> None:
     what = dataset.registry_name or type(dataset).__name__
     if dataset.poses() is None:
-        raise ProfileError(
-            f"data={what}: the scene profile needs a body dataset with per-frame poses and posed vertices "
-            f"(e.g. data=synthetic_studio or data=zju_mocap); this dataset has none. Profile a body capture instead."
+        raise SurveyError(
+            f"data={what}: the scene survey needs a body dataset with per-frame poses and posed vertices "
+            f"(e.g. data=synthetic_studio or data=zju_mocap); this dataset has none. Survey a body capture instead."
         )
     try:
         verts = dataset.vertices(dataset.frame_ids[0])
     except (OSError, ValueError, KeyError) as exc:
-        raise ProfileError(
-            f"data={what}: the scene profile needs the posed body vertices of every frame (a vertices/ folder in the "
+        raise SurveyError(
+            f"data={what}: the scene survey needs the posed body vertices of every frame (a vertices/ folder in the "
             f"ZJU-MoCap layout, as EasyMocap writes it); reading frame {dataset.frame_ids[0]} failed: {exc}"
         ) from None
     joints = dataset.poses().shape[1]
     if body is None or verts.shape[0] != body.rest_vertices.shape[0] or joints != body.num_joints:
         found = None if body is None else body.rest_vertices.shape[0]
-        raise ProfileError(
+        raise SurveyError(
             f"data={what}: the stored vertices and poses have {verts.shape[0]} points and {joints} joints but body "
             f"'{None if body is None else body.registry_name}' has {found} and "
             f"{None if body is None else body.num_joints}; select "
@@ -305,13 +305,13 @@ def _check_profilable(dataset, body) -> None:
         )
 
 
-def profile_dataset(
+def survey_dataset(
     dataset, body, max_frames: int = 12, blur_px: float = 1.0, moving_deg: float = 5.0, progress: bool = True
-) -> SceneProfile:
+) -> SceneSurvey:
     """Measure a training split (see the module docstring). `body` supplies the faces and joint names."""
     from tqdm.auto import tqdm
 
-    _check_profilable(dataset, body)
+    _check_surveyable(dataset, body)
     t0 = time.perf_counter()
     frames = list(dataset.frame_ids)
     poses = dataset.poses()  # [F_total, J, 3]
@@ -326,7 +326,7 @@ def profile_dataset(
     view_var, view_n = 0.0, 0
     pose_keys, pose_frames, pose_colours = [], [], []
     floor_var, floor_n = 0.0, 0
-    bar = tqdm(total=len(sampled) + len(partners), desc="scene profile", unit="frame", disable=not progress)
+    bar = tqdm(total=len(sampled) + len(partners), desc="scene survey", unit="frame", disable=not progress)
     for i, f in enumerate(sampled):
         samples = sampler.frame(f, with_silhouettes=True)
         bar.update(1)
@@ -349,8 +349,8 @@ def profile_dataset(
     per_view = {int(v): float(np.mean(a)) for v, a in sampler.silhouette.items() if a}
     W, H = int(dataset.cameras.width), int(dataset.cameras.height)
     sil = float(np.mean(list(per_view.values())))
-    return SceneProfile(
-        key=profile_key(dataset, max_frames, blur_px, moving_deg),
+    return SceneSurvey(
+        key=survey_key(dataset, max_frames, blur_px, moving_deg),
         dataset=str(dataset.root or ""),
         body=str(dataset.body_name),
         width=W,
@@ -371,8 +371,8 @@ def profile_dataset(
     )
 
 
-def profile_body(body_node: Any, dataset):
-    """The body whose faces and joint names the profile uses: the configured one when it is the dataset's body,
+def survey_body(body_node: Any, dataset):
+    """The body whose faces and joint names the survey uses: the configured one when it is the dataset's body,
     else the dataset's body with its default options."""
     from framework.build import build_component, node_kwargs
 
@@ -382,20 +382,20 @@ def profile_body(body_node: Any, dataset):
     return build_component("body", {"name": dataset.body_name})
 
 
-def save_profile(profile: SceneProfile, path: Path) -> None:
-    """Write the profile as YAML (atomically, framework.atomic)."""
+def save_survey(survey: SceneSurvey, path: Path) -> None:
+    """Write the survey as YAML (atomically, framework.atomic)."""
     import yaml
 
-    atomic_write_text(path, yaml.safe_dump(profile.to_dict(), sort_keys=False))
+    atomic_write_text(path, yaml.safe_dump(survey.to_dict(), sort_keys=False))
 
 
-def load_profile(path: Path) -> SceneProfile:
+def load_survey(path: Path) -> SceneSurvey:
     import yaml
 
-    return SceneProfile.from_dict(yaml.safe_load(Path(path).read_text()))
+    return SceneSurvey.from_dict(yaml.safe_load(Path(path).read_text()))
 
 
-def cached_profile(
+def cached_survey(
     dataset,
     body,
     max_frames: int = 12,
@@ -403,20 +403,20 @@ def cached_profile(
     moving_deg: float = 5.0,
     force: bool = False,
     progress: bool = True,
-) -> tuple[SceneProfile, Path, bool]:
-    """The profile of `dataset`, read from beside the data when it was measured before with the same settings.
-    Returns (profile, its YAML path, whether it was read from that file)."""
-    key = profile_key(dataset, max_frames, blur_px, moving_deg)
-    path = profile_path(dataset, key)
+) -> tuple[SceneSurvey, Path, bool]:
+    """The survey of `dataset`, read from beside the data when it was measured before with the same settings.
+    Returns (survey, its YAML path, whether it was read from that file)."""
+    key = survey_key(dataset, max_frames, blur_px, moving_deg)
+    path = survey_path(dataset, key)
     if path.is_file() and not force:
         try:
-            profile = load_profile(path)
-            if profile.key == key and profile.version == PROFILE_VERSION:
-                return profile, path, True
+            survey = load_survey(path)
+            if survey.key == key and survey.version == SURVEY_VERSION:
+                return survey, path, True
         except (OSError, ValueError, TypeError, KeyError):
             pass  # unreadable or from another version: measure again
-    profile = profile_dataset(
+    survey = survey_dataset(
         dataset, body, max_frames=max_frames, blur_px=blur_px, moving_deg=moving_deg, progress=progress
     )
-    save_profile(profile, path)
-    return profile, path, False
+    save_survey(survey, path)
+    return survey, path, False

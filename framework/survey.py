@@ -1,8 +1,8 @@
-"""`python -m framework.profile data=NAME [data.root=...]`: what a capture needs, measured from the data alone.
+"""`python -m framework.survey data=NAME [data.root=...]`: what a capture needs, measured from the data alone.
 
-Prints the scene profile (which joints move, views, frames, silhouette area, view- and pose-dependent colour, how
-well the body mesh follows the masks) and what `+scene=auto` would choose from it, and writes the profile as YAML
-beside the dataset (training with `scene.profile=true` or `+scene=auto` reads it back instead of measuring again).
+Prints the scene survey (which joints move, views, frames, silhouette area, view- and pose-dependent colour, how
+well the body mesh follows the masks) and what `+scene=auto` would choose from it, and writes the survey as YAML
+beside the dataset (training with `scene.survey=true` or `+scene=auto` reads it back instead of measuring again).
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ def run(cfg: DictConfig) -> None:
     from framework.build import build_split
     from framework.plugins import load_plugins
     from framework.scene.auto import choose
-    from framework.scene.profile import cached_profile, profile_body
+    from framework.scene.survey import cached_survey, survey_body
 
     load_plugins()
     dataset = build_split(cfg.data, "train")
-    body = profile_body(cfg.body, dataset)
+    body = survey_body(cfg.body, dataset)
     s = cfg.scene
-    profile, path, cached = cached_profile(
+    survey, path, cached = cached_survey(
         dataset,
         body,
         max_frames=int(s.max_frames),
@@ -35,11 +35,11 @@ def run(cfg: DictConfig) -> None:
         moving_deg=float(s.moving_deg),
         force=bool(cfg.force),
     )
-    print(profile.report())
-    print(f"  profile {'read from' if cached else 'written to'} {path}\n")
+    print(survey.report())
+    print(f"  survey {'read from' if cached else 'written to'} {path}\n")
     root = body.joint_names[body.parents.tolist().index(-1)]
     print("what +scene=auto would choose (thresholds: conf/scene/auto.yaml):")
-    for choice in choose(profile, dict(s.thresholds), root_joint=root):
+    for choice in choose(survey, dict(s.thresholds), root_joint=root):
         print(f"  {choice.line()}")
 
 
@@ -49,7 +49,7 @@ def main() -> None:
 
     sys.argv = choose_profile(sys.argv)  # the synthetic studio's size follows the hardware profile, as in training
 
-    @hydra_main("scene_profile")
+    @hydra_main("survey")
     def _main(cfg: DictConfig) -> None:
         with reported_as_message():
             run(cfg)

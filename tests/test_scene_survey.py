@@ -1,4 +1,4 @@
-"""The scene profile (`framework.scene.profile`) on studio captures whose content is known by construction."""
+"""The scene survey (`framework.scene.survey`) on studio captures whose content is known by construction."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import torch
 
 from framework.plugins import load_plugins
 from framework.registry import BODIES
-from framework.scene.profile import (
-    ProfileError,
-    cached_profile,
+from framework.scene.survey import (
+    SurveyError,
+    cached_survey,
     joint_rotation_ranges,
-    profile_dataset,
+    survey_dataset,
 )
 
 load_plugins()
@@ -36,7 +36,7 @@ def body():
 
 @pytest.fixture(scope="module")
 def looks(tmp_path_factory, body):
-    """Profiles of the same arms-only capture in matte and glossy cloth, and of a near-static capture (128 px)."""
+    """Surveys of the same arms-only capture in matte and glossy cloth, and of a near-static capture (128 px)."""
     size = {"resolution": 128, "views": 8, "frames": 4}
     out = {}
     for name, kwargs in {
@@ -44,20 +44,20 @@ def looks(tmp_path_factory, body):
         "glossy": {"motion": "arms", "look": "glossy"},
         "idle": {"motion": "idle"},
     }.items():
-        out[name] = profile_dataset(_studio(tmp_path_factory, **size, **kwargs), body, progress=False)
+        out[name] = survey_dataset(_studio(tmp_path_factory, **size, **kwargs), body, progress=False)
     return out
 
 
-def test_profile_of_an_arms_only_capture_reports_exactly_the_arm_joints(tmp_path_factory, body):
+def test_survey_of_an_arms_only_capture_reports_exactly_the_arm_joints(tmp_path_factory, body):
     dataset = _studio(tmp_path_factory, motion="arms")
-    profile, path, cached = cached_profile(dataset, body, progress=False)
+    survey, path, cached = cached_survey(dataset, body, progress=False)
     assert not cached and path.parent == dataset.root and path.suffix == ".yaml"
-    assert set(profile.moving_joints) == ARM_JOINTS
-    assert all(profile.joints[n] == 0.0 for n in profile.still_joints)  # untouched joints have no motion at all
-    assert profile.views == len(dataset.views) and profile.frames == len(dataset.frame_ids)
-    assert 0 < profile.silhouette_fraction < 0.5 and set(profile.silhouette_px_per_view) == set(dataset.views)
-    again, path2, cached2 = cached_profile(dataset, body, progress=False)
-    assert cached2 and path2 == path and again == profile  # read back from the YAML, field for field
+    assert set(survey.moving_joints) == ARM_JOINTS
+    assert all(survey.joints[n] == 0.0 for n in survey.still_joints)  # untouched joints have no motion at all
+    assert survey.views == len(dataset.views) and survey.frames == len(dataset.frame_ids)
+    assert 0 < survey.silhouette_fraction < 0.5 and set(survey.silhouette_px_per_view) == set(dataset.views)
+    again, path2, cached2 = cached_survey(dataset, body, progress=False)
+    assert cached2 and path2 == path and again == survey  # read back from the YAML, field for field
 
 
 def test_joint_rotation_range_is_the_largest_angle_between_two_frames():
@@ -83,7 +83,7 @@ def test_pose_dependence_separates_a_near_static_capture(looks):
 def test_skin_offset_grows_when_the_mesh_leaves_the_masks(tmp_path_factory, body):
     """The stored mesh is the rendered surface (offset ~0); shrunk by 20% about its centre, it misses the masks."""
     dataset = _studio(tmp_path_factory, motion="arms", resolution=96)
-    exact = profile_dataset(dataset, body, max_frames=2, progress=False)
+    exact = survey_dataset(dataset, body, max_frames=2, progress=False)
     original = dataset.vertices
 
     def shrunk(frame: int) -> torch.Tensor:
@@ -91,17 +91,17 @@ def test_skin_offset_grows_when_the_mesh_leaves_the_masks(tmp_path_factory, body
         return v.mean(0) + 0.8 * (v - v.mean(0))
 
     dataset.vertices = shrunk
-    moved = profile_dataset(dataset, body, max_frames=2, progress=False)
+    moved = survey_dataset(dataset, body, max_frames=2, progress=False)
     assert exact.skin_offset_px < 0.25 < 1.0 < moved.skin_offset_px
     assert math.isclose(exact.silhouette_px, moved.silhouette_px)  # the masks did not change
 
 
-def test_a_dataset_without_a_body_cannot_be_profiled(body):
+def test_a_dataset_without_a_body_cannot_be_surveyed(body):
     class Static:
         registry_name = "static_scene"
 
         def poses(self):
             return None
 
-    with pytest.raises(ProfileError, match="data=static_scene: the scene profile needs a body dataset"):
-        profile_dataset(Static(), body)
+    with pytest.raises(SurveyError, match="data=static_scene: the scene survey needs a body dataset"):
+        survey_dataset(Static(), body)
