@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-VERBS = ["train", "evaluate", "render", "view", "export", "prune", "survey"]
+VERBS = ["train", "evaluate", "render", "view", "export", "prune", "survey", "report", "data.convert", "data.check"]
 TAKES_GROUPS = {"train", "survey"}  # they compose the training config's groups; the others read a checkpoint
 
 

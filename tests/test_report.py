@@ -193,12 +193,13 @@ def test_variant_ignores_seed_and_bookkeeping():
 
 def test_report_command(parts, tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "framework.report", *map(str, parts), "--out", str(tmp_path / "r")]
+    runs = ",".join(map(str, parts))
+    cmd = [sys.executable, "-m", "framework.report", f"runs=[{runs}]", f"out={tmp_path / 'r'}"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "Table 4" in proc.stdout and (tmp_path / "r" / "table4.md").is_file()
     proc = subprocess.run(
-        [sys.executable, "-m", "framework.report", str(tmp_path / "nothing")],
+        [sys.executable, "-m", "framework.report", f"runs={tmp_path / 'nothing'}"],
         env=env,
         capture_output=True,
         text=True,

@@ -17,8 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
+from framework.errors import SplatrigError
 from framework.evaluation.run_record import metrics_from_summary, write_run_record
-from framework.report import main as report_main
+from framework.report import report
 from framework.reporting.pareto import pareto_front
 from framework.reporting.runs import ReportError, find_runs
 from framework.reporting.tradeoff import build_points, knob_gains, parse_budget, recommend
@@ -176,21 +177,8 @@ def test_speed_per_db_ranks_the_knobs(sweep: Path) -> None:
 
 def test_report_end_to_end(sweep: Path, capsys) -> None:
     out = sweep / "report"
-    code = report_main(
-        [
-            str(sweep / "part1"),
-            str(sweep / "part2"),
-            "--kind",
-            "tradeoff",
-            "--out",
-            str(out),
-            "--budget",
-            "fps>=20",
-            "--budget",
-            "model_mb<=0.5",
-        ]
-    )
-    assert code == 0
+    written = report([sweep / "part1", sweep / "part2"], kind="tradeoff", out=out, budgets=["fps>=20", "model_mb<=0.5"])
+    assert {p.name for p in written} >= {"tradeoff.md", "tradeoff.csv"}
     for name in (
         "tradeoff.md",
         "tradeoff.csv",
@@ -212,8 +200,8 @@ def test_report_end_to_end(sweep: Path, capsys) -> None:
 
 
 def test_budget_flag_belongs_to_the_tradeoff_report(sweep: Path) -> None:
-    with pytest.raises(SystemExit):
-        report_main([str(sweep), "--kind", "table4", "--budget", "fps>=1"])
+    with pytest.raises(SplatrigError, match="kind=tradeoff only"):
+        report([sweep], kind="table4", budgets=["fps>=1"])
 
 
 # ------------------------------------------------------------------------------------------------ the sweep

@@ -1,4 +1,4 @@
-"""`python -m framework.data.convert easymocap ROOT OUT`: an EasyMocap capture in the ZJU-MoCap layout, for tools
+"""`python -m framework.data.convert root=CAPTURE out=FOLDER`: an EasyMocap capture in the ZJU-MoCap layout, for tools
 that expect annots.npy / params/ / vertices/ (Neural Body, Animatable NeRF, our `data=zju_mocap`).
 
 What it writes (framework.data.zju.layout.ZjuWriter): images copied byte for byte under <OUT>/<camera name>/
@@ -11,7 +11,6 @@ frame came from. `data=zju_mocap data.protocol=null data.root=OUT` then reads th
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -55,7 +54,7 @@ def easymocap_to_zju(
     )
     out = Path(out)
     if (out / ANNOTS).exists() and not force:
-        raise SplatrigError(f"{out / ANNOTS} exists: {out} already holds a sequence; pick another OUT or pass --force")
+        raise SplatrigError(f"{out / ANNOTS} exists: {out} already holds a sequence; pick another out= or force=true")
     selected = frame_range(frames, seq.num_frames, "frames")
     exts = {seq.image_path(f, v).suffix.lower() for f in selected[:1] for v in range(seq.num_views)}
     if len(exts) != 1:
@@ -80,35 +79,31 @@ def easymocap_to_zju(
     return writer.finish(len(selected)).parent
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m framework.data.convert", description=__doc__.split("\n\n")[0])
-    sub = ap.add_subparsers(dest="source", required=True)
-    em = sub.add_parser("easymocap", help="EasyMocap output folder -> ZJU-MoCap layout")
-    em.add_argument("root", help="the capture folder holding intri.yml, extri.yml, images/, masks, output*/smpl")
-    em.add_argument("out", help="output folder (the ZJU-MoCap-layout sequence)")
-    em.add_argument("--cameras", nargs="*", default=None, help="camera names to keep, in order (default: all)")
-    em.add_argument("--frames", type=int, nargs="*", default=None, help="START END [STEP] (end exclusive)")
-    em.add_argument("--mask-dir", default="auto", help="auto (mask/, else mask-schp/) or a folder under ROOT")
-    em.add_argument("--params-dir", default="auto", help="auto (output*/smpl) or a folder under ROOT")
-    em.add_argument("--person-id", type=int, default=None, help="whose parameters, when several people were fitted")
-    em.add_argument("--smplx-model", default=None, help="SMPL-X model file or folder (needed for 87-value poses)")
-    em.add_argument("--gender", default="neutral", help="gender of the SMPL-X file (neutral, male, female)")
-    em.add_argument("--force", action="store_true", help="overwrite an existing sequence in OUT")
-    a = ap.parse_args(argv)
-    with reported_as_message():
-        out = easymocap_to_zju(
-            a.root,
-            a.out,
-            cameras=a.cameras,
-            frames=a.frames,
-            mask_dir=a.mask_dir,
-            params_dir=a.params_dir,
-            person_id=a.person_id,
-            smplx_model_path=a.smplx_model,
-            gender=a.gender,
-            force=a.force,
-        )
-    print(f"wrote {out} (read it with data=zju_mocap data.protocol=null data.root={out})")
+def main() -> int:
+    from omegaconf import DictConfig, OmegaConf
+
+    from framework.cli import hydra_main
+
+    @hydra_main("convert")
+    def _main(cfg: DictConfig) -> None:
+        with reported_as_message():
+            if cfg.source != "easymocap":
+                raise SplatrigError(f"source={cfg.source}: no converter for it; the one source is easymocap")
+            out = easymocap_to_zju(
+                cfg.root,
+                cfg.out,
+                cameras=None if cfg.cameras is None else [str(c) for c in cfg.cameras],
+                frames=OmegaConf.to_container(cfg.frames) if cfg.frames is not None else None,
+                mask_dir=cfg.mask_dir,
+                params_dir=cfg.params_dir,
+                person_id=cfg.person_id,
+                smplx_model_path=cfg.smplx_model,
+                gender=cfg.gender,
+                force=bool(cfg.force),
+            )
+        print(f"wrote {out} (read it with data=zju_mocap data.protocol=null data.root={out})")
+
+    _main()
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The report kinds `python -m framework.report --kind NAME` knows. A kind is a function (runs, out_dir) ->
+"""The report kinds `python -m framework.report kind=NAME` knows. A kind is a function (runs, out_dir) ->
 (markdown to print, paths written); every kind reads the same runs (`framework.reporting.runs`), so adding one is one
 module and one line here. Kinds that take options (tradeoff: `budgets`) get them as keyword arguments."""
 
