@@ -11,6 +11,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from framework.build import ConfigError
+from framework.execution import KERNEL_CHOICES
 from framework.splat.sh import MAX_SH_DEGREE
 
 _ABSENT = object()
@@ -129,6 +130,13 @@ def check_train_config(cfg: DictConfig) -> None:
                 "a finite learning rate >= 0",
                 f"For example optim.lr.{name}=1e-3.",
             )
+    _expect(
+        cfg,
+        "execution.kernels",
+        lambda v: v in KERNEL_CHOICES,
+        f"one of {', '.join(KERNEL_CHOICES)} (framework/execution.py)",
+        "For example execution.kernels=auto.",
+    )
     _expect(
         cfg,
         "optim.means_final_ratio",

@@ -6,8 +6,8 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
+from framework.execution import COMPILED, Execution
 from framework.guards import AXIS_ANGLE_TAYLOR_SQ, NORM_EPS
-from framework.runtime import cpu_float
 
 
 def _normalize_with_norm(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> tuple[Tensor, Tensor]:
@@ -25,9 +25,9 @@ def _normalize_with_norm(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> tup
 IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])  # wxyz; read-only, moved to a device by `constant_on`
 
 
-def quat_normalize(q: Tensor, eps: float = NORM_EPS, dim: int = -1) -> Tensor:
+def quat_normalize(q: Tensor, eps: float = NORM_EPS, dim: int = -1, execution: Execution = COMPILED) -> Tensor:
     """Normalise quaternions along `dim` ([..., 4]; dim=0 for [4, N]); a zero one maps to the identity, not NaN."""
-    if q.requires_grad and few_kernels(q):
+    if q.requires_grad and few_kernels(q, execution):
         return _QuatNormalize.apply(q, eps, dim)
     return _normalize_with_norm(q, eps, dim)[0]
 
@@ -126,10 +126,11 @@ def _bilinear(a: Tensor, b: Tensor, dim: int, index: Tensor, coef: Tensor) -> Te
     return terms.unflatten(-1, (-1, 4)).sum(-1)
 
 
-def few_kernels(t: Tensor) -> bool:
-    """Whether the rotation helpers take their few-kernel forms for t: every tensor the compiled CPU paths do not
-    take (a GPU's; a CPU's under `use_compiled_paths(False)`, which runs the GPU's code)."""
-    return not cpu_float(t)
+def few_kernels(t: Tensor, execution: Execution) -> bool:
+    """Whether the rotation helpers take their few-kernel forms for t: every tensor `execution` does not compile (a
+    GPU's; a CPU's under the torch execution, which runs the GPU's code). Each helper takes the model's execution as
+    its last argument (default: compiled, the CPU's own forms on a CPU)."""
+    return not execution.compiled(t)
 
 
 class _QuatToRotmat(torch.autograd.Function):
@@ -171,20 +172,22 @@ class _QuatToRotmat(torch.autograd.Function):
         return torch.where(norm > NORM_EPS, g_q, torch.zeros_like(g_q)), None
 
 
-def quat_to_rotmat(q: Tensor) -> Tensor:
+def quat_to_rotmat(q: Tensor, execution: Execution = COMPILED) -> Tensor:
     """[..., 4] wxyz (any norm) -> [..., 3, 3]."""
-    if few_kernels(q):
-        return _bilinear(*(quat_normalize(q),) * 2, -1, _ROTMAT_INDEX, _ROTMAT_COEF).unflatten(-1, (3, 3))
+    if few_kernels(q, execution):
+        unit = quat_normalize(q, execution=execution)
+        return _bilinear(unit, unit, -1, _ROTMAT_INDEX, _ROTMAT_COEF).unflatten(-1, (3, 3))
     return _QuatToRotmat.apply(q, -1)
 
 
-def quat_to_rotmat_entry_major(q: Tensor) -> Tensor:
+def quat_to_rotmat_entry_major(q: Tensor, execution: Execution = COMPILED) -> Tensor:
     """Component-major quaternions [4, N] wxyz (any norm; `quats.t()` of [N, 4] will do) -> entry-major rotations
     [9, N] (row 3i + j = entry (i, j)): every row contiguous for the vector math that follows."""
     if q.dim() != 2 or q.shape[0] != 4:
         raise ValueError(f"quat_to_rotmat_entry_major: expected [4, N], got shape {tuple(q.shape)}.")
-    if few_kernels(q):
-        return _bilinear(*(quat_normalize(q, dim=0),) * 2, 0, _ROTMAT_INDEX, _ROTMAT_COEF)
+    if few_kernels(q, execution):
+        unit = quat_normalize(q, dim=0, execution=execution)
+        return _bilinear(unit, unit, 0, _ROTMAT_INDEX, _ROTMAT_COEF)
     return _QuatToRotmat.apply(q, 0)
 
 
@@ -198,10 +201,10 @@ def products_3x3(X: Tensor, Y: Tensor, transpose_x: bool = False) -> Tensor:
     return (X.unsqueeze(2) * Y.unsqueeze(0)).sum(1)  # sum_k X[i, k] Y[k, j]
 
 
-def quat_multiply(a: Tensor, b: Tensor, dim: int = -1) -> Tensor:
+def quat_multiply(a: Tensor, b: Tensor, dim: int = -1, execution: Execution = COMPILED) -> Tensor:
     """Hamilton product a * b of wxyz quaternions along `dim` ([..., 4] by default; dim=0 for component-major
     [4, N], whose components are contiguous rows) (rotation b first, then a)."""
-    if few_kernels(a) and dim in (0, -1):
+    if few_kernels(a, execution) and dim in (0, -1):
         return _bilinear(a, b, dim, _HAMILTON_INDEX, _HAMILTON_COEF)
     aw, ax, ay, az = a.unbind(dim)
     bw, bx, by, bz = b.unbind(dim)
@@ -267,9 +270,9 @@ def rotmat_to_quat_entry_major(R: Tensor) -> Tensor:
     return torch.where(q[:1] < 0, -q, q)
 
 
-def axis_angle_to_rotmat(aa: Tensor) -> Tensor:
+def axis_angle_to_rotmat(aa: Tensor, execution: Execution = COMPILED) -> Tensor:
     """[..., 3] axis-angle -> [..., 3, 3] (Rodrigues), with finite values and gradients at zero angle."""
-    if aa.requires_grad and few_kernels(aa):
+    if aa.requires_grad and few_kernels(aa, execution):
         return _AxisAngleToRotmat.apply(aa)
     return _rodrigues(aa)[0]
 

@@ -1,6 +1,6 @@
 """Process settings: the allocator's reuse of freed tensor memory on a CPU, float32 arithmetic without TF32 on a GPU
-where our numbers depend on it, the default device of a trained model, and the switch of the compiled CPU paths
-(`cpu_float`, the one test every compiled path asks; `use_compiled_paths(False)` makes a CPU run a GPU's code).
+where our numbers depend on it, the default device of a trained model, and torch's CPU threads for small work.
+(Whether the compiled CPU kernels run is no process setting: `framework.execution` is chosen per model.)
 
 (The OpenMP wait policy is the other one; it must be in the environment before torch is imported, so the entry point
 sets it on its first lines.)
@@ -14,9 +14,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
-
-#: False runs the torch code an accelerator runs on a CPU too (see `use_compiled_paths`)
-_compiled_paths = True
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD = -1
@@ -65,21 +62,6 @@ def exact_float32() -> Iterator[None]:
 def default_device() -> str:
     """Where a trained model renders when nobody says: the GPU when there is one, else the CPU."""
     return "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def cpu_float(t: torch.Tensor) -> bool:
-    """Whether the compiled loops read t as it is (a numpy view, no copy, no cast): a CPU float32 or float64 tensor.
-    The one test every compiled path asks before it takes over from torch."""
-    return _compiled_paths and t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
-
-
-def use_compiled_paths(enabled: bool) -> bool:
-    """Switch every compiled CPU path on or off (returns the previous setting). Off, a CPU runs the torch code a GPU
-    runs, operator for operator: `tools/count_syncs.py` counts that path's host syncs and `tools/bench_train.py
-    --accelerator-path` times its host cost on any machine."""
-    global _compiled_paths
-    previous, _compiled_paths = _compiled_paths, bool(enabled)
-    return previous
 
 
 @contextmanager

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from framework.execution import COMPILED, TORCH, Execution
 from framework.geometry import axis_angle_to_rotmat
 from framework.model.avatar import Avatar, GaussianParams, PoseRefiner
 from framework.model.gaussian_init import from_body_surface
@@ -45,16 +46,16 @@ def _batch(body, pose=None, root=None, cameras=None) -> FrameBatch:
     )
 
 
-def _avatar(body, corrector="latent", deformer="lbs_residual", n=600) -> Avatar:
+def _avatar(body, corrector="latent", deformer="lbs_residual", n=600, execution: Execution = COMPILED) -> Avatar:
     g = from_body_surface(body, num=n, sh_degree=1, seed=0, opacity=0.6)
     corr = CORRECTORS.build(corrector)
     corr.bind(body.num_joints * 3)
     deform = DEFORMERS.build(deformer, grid_resolution=16) if deformer != "identity" else DEFORMERS.build(deformer)
     lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
     deform.bind(body, torch.stack([lo - 0.1, hi + 0.1]))
-    return Avatar(
-        GaussianParams(g), RASTERIZERS.build("torch_ref"), corr, deform, body, PoseRefiner(1, body.num_joints)
-    )
+    refiner = PoseRefiner(1, body.num_joints)
+    rasterizer = RASTERIZERS.build("torch_ref")
+    return Avatar(GaussianParams(g), rasterizer, corr, deform, body, refiner, execution=execution)
 
 
 def test_identity_pose_with_identity_corrector_renders_the_canonical_gaussians(body):
@@ -250,64 +251,62 @@ def _count_calls(monkeypatch, module, name: str) -> list[int]:
     return calls
 
 
-def test_the_numba_rasterizer_switches_the_skinning_to_compiled_loops(body, monkeypatch):
-    """avatar.rasterizer = numba turns the deformer's compiled skinning on, any other backend turns it off. It is
-    taken for baked weights without gradients only, and poses the Gaussians as the torch skinning does (to float32
-    rounding); with gradients the torch skinning runs and the posed means keep their graph."""
+def test_the_execution_not_the_rasterizer_chooses_the_compiled_skinning(body, monkeypatch):
+    """The compiled execution (the CPU default) skins baked weights without gradients with the compiled loops, whatever
+    the rasterizer: swapping the backend changes nothing else. With gradients the torch skinning runs and the posed
+    means keep their graph; an avatar built with the torch execution (a GPU's code on this CPU, tools'
+    --accelerator-path) never takes them. Both pose the Gaussians alike (to float32 rounding)."""
     from torch import nn
 
-    import framework.rig.compiled_skinning as compiled
+    import framework.kernels.skinning as compiled
 
-    avatar = _avatar(body)
-    deformer = avatar.deformer
-    weights = deformer.bake(avatar.gaussians.gaussians()).detach()
-    avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
-    assert deformer.compiled_inference is False
+    avatars = {}
+    for name, execution in (("compiled", COMPILED), ("torch", TORCH)):
+        avatar = _avatar(body, execution=execution)
+        weights = avatar.deformer.bake(avatar.gaussians.gaussians()).detach()
+        avatar.gaussians.params["skin_weights"] = nn.Parameter(weights.contiguous(), requires_grad=False)
+        avatars[name] = avatar.eval()
     torch.manual_seed(1)
     pose = 0.4 * torch.randn(1, body.num_joints, 3)
     batch = _batch(body, pose=pose)
     calls = _count_calls(monkeypatch, compiled, "lbs_with_sh_frames_compiled")
-    avatar.rasterizer = RASTERIZERS.build("numba")
-    assert deformer.compiled_inference is True
-    avatar.eval()
+    avatar = avatars["compiled"]
     with torch.no_grad():
         _, posed_compiled, _ = avatar.pose(batch, sh_degree=1)
     assert len(calls) == 1
     _, posed_grad, _ = avatar.pose(batch, sh_degree=1)  # gradients on: the torch path
     assert len(calls) == 1 and posed_grad.means.requires_grad
-    from framework.runtime import use_compiled_paths
-
-    previous = use_compiled_paths(False)  # a GPU's code on this CPU (tools' --accelerator-path): the torch skinning
-    try:
+    for i, backend in enumerate(("numba", "torch_ref")):  # choosing a rasterizer leaves the skinning as it was
+        avatar.rasterizer = RASTERIZERS.build(backend)
+        assert avatar.rasterizer.execution is COMPILED and avatar.deformer.execution is COMPILED
         with torch.no_grad():
-            avatar.pose(_batch(body, pose=0.5 * pose), sh_degree=1)  # a new pose: not the posed cache
-    finally:
-        use_compiled_paths(previous)
-    assert len(calls) == 1
-    avatar.rasterizer = RASTERIZERS.build("torch_ref")
-    assert deformer.compiled_inference is False
+            avatar.pose(_batch(body, pose=(0.5 + 0.1 * i) * pose), sh_degree=1)  # a new pose: not the posed cache
+        assert len(calls) == 2 + i
     with torch.no_grad():
-        _, posed_torch, _ = avatar.pose(batch, sh_degree=1)
-    assert len(calls) == 1
+        _, posed_torch, _ = avatars["torch"].pose(batch, sh_degree=1)
+    assert len(calls) == 3
     for key in ("means", "quats", "log_scales"):
         torch.testing.assert_close(getattr(posed_compiled, key), getattr(posed_torch, key), atol=2e-5, rtol=0, msg=key)
-    moved = (posed_torch.means - avatar.gaussians.gaussians().means).detach()
+    moved = (posed_torch.means - avatars["torch"].gaussians.gaussians().means).detach()
     assert float(moved.abs().max()) > 0.05  # the pose moved them
 
 
-def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
-    """With a `compiled_inference` backend (numba) a frame gets its view colour from the compiled loops, without
-    gradients and with them (training); with torch_ref from the torch path. The frames agree to float32 rounding (SH
-    of degree 1 with random coefficients, a posed avatar, so the skinning frames are not the identity)."""
-    import framework.splat.compiled_sh as compiled_sh
+def test_the_compiled_execution_takes_the_compiled_view_colour(body, monkeypatch):
+    """Under the compiled execution a frame gets its view colour from the compiled loops, without gradients and with
+    them (training), with either rasterizer; under the torch execution from the torch path. The frames agree to
+    float32 rounding (SH of degree 1 with random coefficients, a posed avatar, so the skinning frames are not the
+    identity)."""
+    import framework.kernels.sh_colours as compiled_sh
 
-    avatar = _avatar(body)
+    avatar, torch_avatar = _avatar(body), _avatar(body, execution=TORCH)
     with torch.no_grad():
         avatar.gaussians.params["shN"].normal_(0, 0.5)
+        torch_avatar.gaussians.params["shN"].copy_(avatar.gaussians.params["shN"])
     calls = _count_calls(monkeypatch, compiled_sh, "view_colour_dc_compiled")
     torch.manual_seed(3)
     batch = _batch(body, pose=0.4 * torch.randn(1, body.num_joints, 3))
     avatar.eval()
+    torch_avatar.eval()
     avatar.rasterizer = RASTERIZERS.build("numba")
     with torch.no_grad():
         compiled_rgb = avatar(batch, sh_degree=1).render.rgb
@@ -316,8 +315,11 @@ def test_the_numba_rasterizer_takes_the_compiled_view_colour(body, monkeypatch):
     assert len(calls) == 2 and grad_rgb.requires_grad
     avatar.rasterizer = RASTERIZERS.build("torch_ref")
     with torch.no_grad():
-        torch_rgb = avatar(batch, sh_degree=1).render.rgb
-    assert len(calls) == 2
+        avatar(batch, sh_degree=1)
+    assert len(calls) == 3
+    with torch.no_grad():
+        torch_rgb = torch_avatar(batch, sh_degree=1).render.rgb
+    assert len(calls) == 3
     assert float(torch_rgb.std()) > 0.01  # the avatar is in the picture
     torch.testing.assert_close(compiled_rgb, torch_rgb, atol=1e-4, rtol=0)
     torch.testing.assert_close(compiled_rgb, grad_rgb.detach(), atol=1e-4, rtol=0)

@@ -8,6 +8,7 @@ import torch
 from tool_module import load_tool
 
 from framework.cameras import orbit_cameras
+from framework.execution import COMPILED, TORCH, Execution
 from framework.plugins import load_plugins
 
 load_plugins()
@@ -18,15 +19,19 @@ def tool():
     return load_tool("bench_render")
 
 
-@pytest.fixture(scope="module")
-def avatar(tool):
+def _synthetic(tool, execution: Execution):
     torch.manual_seed(0)
-    av = tool.synthetic_avatar("procedural", 400, "cpu").eval()
+    av = tool.synthetic_avatar("procedural", 400, "cpu", execution).eval()
     for p in av.corrector.parameters():  # a corrector that changes something (its last layer starts at zero)
         torch.nn.init.normal_(p, std=0.05)
     with torch.no_grad():  # view-dependent colour in every band (they start at zero), so each degree renders its own
         av.gaussians.params["shN"].normal_(std=0.2)
     return av
+
+
+@pytest.fixture(scope="module")
+def avatar(tool):
+    return _synthetic(tool, COMPILED)
 
 
 @pytest.mark.parametrize("degree", [3, 1])
@@ -100,20 +105,16 @@ def test_subset_avatar_keeps_gaussians_and_corrected_rows(tool, avatar) -> None:
     assert len(rows) == sum(i in corrected for i in index)
 
 
-def test_operator_counts_of_the_gpu_path_show_one_host_wait_in_the_pose_path(tool, avatar) -> None:
-    """`--accelerator-path`: one frame of a GPU's code on this CPU. The pose path may wait for the host once, in the
-    polar decomposition's single read (framework.rig.polar); the bone transforms, F_a and the view colour never."""
-    from framework.runtime import use_compiled_paths
-
+def test_operator_counts_of_the_gpu_path_show_one_host_wait_in_the_pose_path(tool) -> None:
+    """`--accelerator-path`: one frame of a GPU's code on this CPU (an avatar built with the torch execution). The pose
+    path may wait for the host once, in the polar decomposition's single read (framework.rig.polar); the bone
+    transforms, F_a and the view colour never."""
+    avatar = _synthetic(tool, TORCH)
     body = avatar.body
     centre = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
     cams = orbit_cameras(centre, 3.0, 0.0, 4, 32, 32, fov_deg=40)
     pose = 0.3 * torch.randn(1, body.num_input_joints, 3, generator=torch.Generator().manual_seed(2))
-    previous = use_compiled_paths(False)
-    try:
-        counts = tool.pose_frame_operators(avatar, tool.frame_batch(cams, pose, 0, 32, "cpu"), 3)
-    finally:
-        use_compiled_paths(previous)
+    counts = tool.pose_frame_operators(avatar, tool.frame_batch(cams, pose, 0, 32, "cpu"), 3)
     assert list(counts) == list(tool.POSE_PARTS)
     assert all(ops > launches > 0 for ops, launches, _ in counts.values()), counts  # every part takes some views
     waits = {part: w for part, (_, _, w) in counts.items()}

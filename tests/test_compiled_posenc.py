@@ -1,4 +1,4 @@
-"""The compiled positional encoding (`framework.model.compiled_posenc`) against the torch path of `posenc`: values and
+"""The compiled positional encoding (`framework.kernels.posenc`) against the torch path of `posenc`: values and
 gradients in float64, float32 to rounding, and arguments far from the unit box."""
 
 from __future__ import annotations
@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from framework.model.compiled_posenc import posenc_compiled
+from framework.execution import TORCH
+from framework.kernels.posenc import posenc_compiled
 from framework.model.posenc import posenc, posenc_dim
 
 
@@ -15,7 +16,7 @@ def test_values_and_gradients_equal_the_torch_path_float64(shape, num_freqs):
     g = torch.Generator().manual_seed(num_freqs)
     x = (torch.rand(shape, generator=g, dtype=torch.float64) * 2.4 - 1.2).requires_grad_()  # a little past [-1, 1]
     x2 = x.detach().clone().requires_grad_()
-    ours, ref = posenc_compiled(x, num_freqs), posenc(x2, num_freqs, compiled=False)
+    ours, ref = posenc_compiled(x, num_freqs), posenc(x2, num_freqs, TORCH)
     assert ours.shape == (*shape[:-1], posenc_dim(num_freqs, shape[-1]))
     torch.testing.assert_close(ours, ref, rtol=0, atol=1e-12)
     proj = torch.randn(ours.shape, generator=g, dtype=torch.float64)
@@ -30,7 +31,7 @@ def test_float32_equals_torch_to_rounding_and_posenc_takes_it():
     g = torch.Generator().manual_seed(1)
     x = torch.cat([torch.rand(1000, 3, generator=g) * 2 - 1, torch.full((1, 3), 40.0)]).requires_grad_()
     x2 = x.detach().clone().requires_grad_()
-    ours, ref = posenc(x, 6), posenc(x2, 6, compiled=False)
+    ours, ref = posenc(x, 6), posenc(x2, 6, TORCH)
     assert ours.dtype == torch.float32 and ours.grad_fn is not None and "PosEnc" in type(ours.grad_fn).__name__
     torch.testing.assert_close(ours, ref, rtol=0, atol=2e-6)
     ours.sum().backward()

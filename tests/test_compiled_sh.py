@@ -1,4 +1,4 @@
-"""The compiled view colour (`framework.splat.compiled_sh`) against the torch path in float64, and the switch that
+"""The compiled view colour (`framework.kernels.sh_colours`) against the torch path in float64, and the switch that
 turns it on in an avatar's renders."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.splat.compiled_sh import view_colour_dc_compiled
+from framework.kernels.sh_colours import view_colour_dc_compiled
 from framework.splat.sh import view_colour_dc
 
 F64 = torch.float64
@@ -64,7 +64,7 @@ def test_a_bad_degree_is_refused() -> None:
 def test_rasterizer_colours_match_torch_in_float64(degree: int) -> None:
     """The numba rasterizer's colours (`sh_colours_compiled`) against torch_ref's `sh_colors` for two cameras, one of
     them at a Gaussian's mean (only the constant term there), with colours below zero clamped in both."""
-    from framework.splat.compiled_sh import sh_colours_compiled
+    from framework.kernels.sh_colours import sh_colours_compiled
     from plugins.rasterizer.torch_ref import sh_colors
 
     coeffs, dirs, _ = _inputs(300, F64)

@@ -1,4 +1,4 @@
-"""The compiled skinning (`framework.rig.compiled_skinning`) against the torch skinning in float64, and the switch
+"""The compiled skinning (`framework.kernels.skinning`) against the torch skinning in float64, and the switch
 that turns it on with the `numba` rasterizer."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from framework.geometry import axis_angle_to_rotmat
-from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled
+from framework.kernels.skinning import lbs_with_sh_frames_compiled
 from framework.rig.lbs import lbs_with_sh_frames
 from framework.types import Gaussians
 

@@ -1,4 +1,4 @@
-"""The compiled skinning with gradients (`framework.rig.compiled_skinning.lbs_with_sh_frames_trainable`, training on
+"""The compiled skinning with gradients (`framework.kernels.skinning.lbs_with_sh_frames_trainable`, training on
 the CPU) against the torch skinning it replaces: values and the gradients of every input in float64, finite
 differences, float32 error, and the deformer's switch."""
 
@@ -9,11 +9,11 @@ import math
 import pytest
 import torch
 
-from framework import compiled_threads
 from framework.geometry import axis_angle_to_rotmat
 from framework.guards import LBS_MIN_STRETCH
-from framework.rig import compiled_skinning
-from framework.rig.compiled_skinning import lbs_with_sh_frames_trainable
+from framework.kernels import skinning as compiled_skinning
+from framework.kernels import threads as compiled_threads
+from framework.kernels.skinning import lbs_with_sh_frames_trainable
 from framework.rig.lbs import lbs_with_sh_frames
 from framework.types import Gaussians
 from tests.test_compiled_skinning import _gaussians, _transforms, _weights

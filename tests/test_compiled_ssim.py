@@ -1,4 +1,4 @@
-"""The compiled SSIM of CPU training steps (`framework.image.compiled_ssim`, its filter `compiled_filter`) against
+"""The compiled SSIM of CPU training steps (`framework.kernels.ssim`, its filter `separable_filter`) against
 scipy's mirrored correlation and kornia's SSIM and filter, values and gradients in float64, and against the torch
 path of `ssim_map` in float32."""
 
@@ -9,9 +9,10 @@ import pytest
 import torch
 from scipy.ndimage import correlate1d
 
-from framework.image import compiled_ssim
-from framework.image.compiled_filter import filter_planes
+from framework.execution import COMPILED
 from framework.image.ssim import ssim_map
+from framework.kernels import ssim as compiled_ssim
+from framework.kernels.separable_filter import filter_planes
 
 
 def _filter(x: np.ndarray, kx: np.ndarray, ky: np.ndarray, adjoint: bool) -> np.ndarray:
@@ -56,7 +57,7 @@ def test_ssim_matches_kornia_values_and_both_gradients(monkeypatch, shape):
     b = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
     a2, b2 = (x.detach().clone().requires_grad_() for x in (a, b))
     window = min(11, 2 * min(shape[-2:]) - 1)
-    ours, ref = ssim_map(a, b, window, compiled=True), kornia_ssim(a2, b2, window, max_val=1.0)
+    ours, ref = compiled_ssim.ssim_map(a, b, window), kornia_ssim(a2, b2, window, max_val=1.0)
     torch.testing.assert_close(ours, ref, rtol=0, atol=1e-12)
     proj = torch.rand(shape, generator=g, dtype=torch.float64)
     (ours * proj).sum().backward()
@@ -70,7 +71,7 @@ def test_gradcheck_on_near_constant_images():
     g = torch.Generator().manual_seed(1)
     a = (0.5 + 1e-3 * torch.rand(1, 2, 7, 8, generator=g, dtype=torch.float64)).requires_grad_()
     b = torch.rand(1, 2, 7, 8, generator=g, dtype=torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(lambda x, y: ssim_map(x, y, 5, compiled=True), (a, b))
+    assert torch.autograd.gradcheck(lambda x, y: compiled_ssim.ssim_map(x, y, 5), (a, b))
 
 
 def test_float32_same_as_the_torch_path():
@@ -80,7 +81,7 @@ def test_float32_same_as_the_torch_path():
     a = torch.rand(1, 3, 40, 56, generator=g, requires_grad=True)
     b = torch.rand(1, 3, 40, 56, generator=g)
     a2 = a.detach().clone().requires_grad_()
-    ours, ref = ssim_map(a, b, 11, compiled=True), ssim_map(a2, b, 11, compiled=False)
+    ours, ref = compiled_ssim.ssim_map(a, b, 11), ssim_map(a2, b, 11)
     assert ours.dtype == torch.float32
     torch.testing.assert_close(ours, ref, rtol=0, atol=1e-5)
     ours.mean().backward()
@@ -90,7 +91,7 @@ def test_float32_same_as_the_torch_path():
 
 def test_applies_only_to_cpu_floats_and_rejects_a_window_too_large():
     x = torch.rand(1, 3, 4, 20)
-    assert compiled_ssim.applies(x) and compiled_ssim.applies(x.double()) and not compiled_ssim.applies(x.half())
-    assert not compiled_ssim.applies(x.to(torch.device("meta")))
+    assert COMPILED.compiled(x) and COMPILED.compiled(x.double()) and not COMPILED.compiled(x.half())
+    assert not COMPILED.compiled(x.to(torch.device("meta")))
     with pytest.raises(ValueError, match="11-tap window on 4 x 20"):
-        ssim_map(x, x, 11, compiled=True)
+        compiled_ssim.ssim_map(x, x, 11)

@@ -1,4 +1,4 @@
-"""The compiled blend weights and L_w (`framework.rig.compiled_weights`) against the torch path they replace.
+"""The compiled blend weights and L_w (`framework.kernels.skin_weights`) against the torch path they replace.
 
 References: the torch path in float64 (`WeightField.sample`, the residual's combination, `weight_std`), which derives
 its gradients by autograd through an embedding bag and a softmax, and finite differences (gradcheck)."""
@@ -9,10 +9,10 @@ import pytest
 import torch
 from torch import Tensor
 
-from framework import compiled_threads
+from framework.kernels import threads as compiled_threads
+from framework.kernels.skin_weights import smooth_weights_compiled
 from framework.model.gaussian_init import from_body_surface
 from framework.registry import REGISTRIES
-from framework.rig.compiled_weights import smooth_weights_compiled
 from framework.rig.lbs import six_points, weight_std
 from framework.rig.weight_field import WeightField
 

@@ -100,10 +100,10 @@ def test_inference_layers_equal_the_plain_ones(rows):
     g, pose = gaussians(300), torch.randn(P)
     assert corrector_mlp._FUSED_LINEAR_AVAILABLE  # the CPU build CI installs has it: the fused path is tested
     with torch.no_grad():
-        assert corrector_mlp._fuses_layers(g.latents)
+        assert corrector_mlp._fuses_layers(g.latents, c.execution)
         fused = c.residuals(g, pose)
     with torch.enable_grad():
-        assert not corrector_mlp._fuses_layers(g.latents)
+        assert not corrector_mlp._fuses_layers(g.latents, c.execution)
         plain = c.residuals(g, pose).detach()
     assert fused.abs().max() > 0.1  # the layers do something
     torch.testing.assert_close(fused, plain, rtol=1e-5, atol=1e-5)  # float32: products summed in another order

@@ -32,7 +32,7 @@ def test_ssim_filters_with_tf32_off_and_restores_the_flag() -> None:
     x, y = torch.rand(1, 3, 20, 20), torch.rand(1, 3, 20, 20)
     before = torch.backends.cudnn.allow_tf32
     with mock.patch.object(kornia.filters, "filter2d_separable", _recording(kornia.filters.filter2d_separable, seen)):
-        ssim_map(x, y, 11, compiled=False)
+        ssim_map(x, y, 11)
     assert seen == [False] and torch.backends.cudnn.allow_tf32 == before
 
 
@@ -65,6 +65,6 @@ def test_cuda_ssim_matches_float64() -> None:
     g = torch.Generator().manual_seed(0)
     image = F.avg_pool2d(torch.rand(1, 3, 264, 264, generator=g), 9, 1)  # [1, 3, 256, 256], smooth
     noisy = (image + 0.02 * torch.randn(image.shape, generator=g)).clamp(0, 1)
-    ref = ssim_map(noisy.double(), image.double(), 11, compiled=False).mean().item()
+    ref = ssim_map(noisy.double(), image.double(), 11).mean().item()
     cuda = ssim_map(noisy.cuda(), image.cuda(), 11).mean().item()
     assert abs(cuda - ref) < 1e-5  # float32: ~3e-6 on a CPU; TF32 convolutions: ~1e-2

@@ -9,7 +9,7 @@ check the compiled paths on their own terms:
   moves by at most one pair's weight, under 1/255 (`FLIP_TOL`).
 - on the extreme scenes of issue 11 it stays finite, and within the conformance tolerances of the float64 brute force;
 - renders that need gradients project and colour the Gaussians with torch_ref's autograd code and composite them
-  with compiled loops forward and backward (`framework.splat.compiled_composite`); their gradients equal torch_ref's
+  with compiled loops forward and backward (`framework.kernels.compositing`); their gradients equal torch_ref's
   in float64 to 1e-8 (relative to each tensor's largest entry), and in float32 are within torch_ref's own float32
   error. The conformance suite's finite-difference and extreme-scene gradient tests run on them too.
 """
@@ -167,7 +167,7 @@ def test_gradients_at_clamped_alpha_and_early_termination(backends) -> None:
 def test_pair_log_grows_when_a_render_has_more_pairs(backends, monkeypatch) -> None:
     """The pair log starts with room for 8 pairs per entry (or the last render's count): a render with far more,
     large Gaussians over the whole image, runs again with room for all, and its gradients are still torch_ref's."""
-    from framework.splat import compiled_composite
+    from framework.kernels import compositing as compiled_composite
 
     numba_backend, torch_ref = backends
     monkeypatch.setattr(compiled_composite, "_capacity_hint", [0])
@@ -205,7 +205,7 @@ def test_unused_outputs_and_an_empty_image(backends) -> None:
 def test_compiled_projection_gradients_equal_autograd_through_project_gaussians() -> None:
     """The hand-written projection backward against autograd through `project_gaussians`, float64, three cameras:
     Gaussians past the field-of-view clamp (its slope is 0 there), zero and tiny quaternions, needle-thin scales."""
-    from framework.splat.compiled_projection import project_compiled
+    from framework.kernels.projection import project_compiled
     from framework.splat.projection import project_gaussians
 
     scene = make_random_scene(8, 400, 48, 40, dtype=torch.float64, num_cameras=3, sh_degree=0)

@@ -1,5 +1,5 @@
-"""The SH basis in both of its forms: entry by entry (a CPU's) and as gathered monomials (an accelerator's, which
-`use_compiled_paths(False)` makes a CPU run). Each is orthonormal over the sphere (quadrature), they agree to float
+"""The SH basis in both of its forms: entry by entry (a CPU's) and as gathered monomials (an accelerator's, which the
+torch execution makes a CPU run). Each is orthonormal over the sphere (quadrature), they agree to float
 rounding, the gathered form's gradients match finite differences and stay finite at the zero direction."""
 
 from __future__ import annotations
@@ -11,15 +11,15 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from framework.runtime import use_compiled_paths
+from framework.execution import COMPILED, TORCH
 from framework.splat.sh import num_sh_bases, sh_basis
+
+FORMS = {"entries": COMPILED, "monomials": TORCH}  # the execution that takes each form on a CPU
 
 
 @pytest.fixture(params=["entries", "monomials"])
 def form(request):
-    previous = use_compiled_paths(request.param == "entries")
-    yield request.param
-    use_compiled_paths(previous)
+    return request.param
 
 
 def _sphere_quadrature() -> tuple[torch.Tensor, torch.Tensor]:
@@ -37,7 +37,7 @@ def _sphere_quadrature() -> tuple[torch.Tensor, torch.Tensor]:
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_orthonormal_over_the_sphere(form, degree):
     dirs, weights = _sphere_quadrature()
-    B = sh_basis(degree, 2.5 * dirs)  # [Q, k]; the length is normalised away
+    B = sh_basis(degree, 2.5 * dirs, execution=FORMS[form])  # [Q, k]; the length is normalised away
     k = num_sh_bases(degree)
     torch.testing.assert_close(B.T @ (B * weights[:, None]), torch.eye(k, dtype=torch.float64), atol=1e-10, rtol=0)
 
@@ -46,24 +46,20 @@ def test_orthonormal_over_the_sphere(form, degree):
 def test_forms_agree_to_rounding(dtype, tol):
     dirs = torch.randn(500, 7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).to(dtype)
     for degree in range(4):
-        entries = sh_basis(degree, dirs)
-        previous = use_compiled_paths(False)
-        try:
-            monomials = sh_basis(degree, dirs)
-        finally:
-            use_compiled_paths(previous)
+        entries = sh_basis(degree, dirs, execution=FORMS["entries"])
+        monomials = sh_basis(degree, dirs, execution=FORMS["monomials"])
         assert monomials.shape == entries.shape == (500, 7, num_sh_bases(degree))
         assert (monomials.double() - entries.double()).abs().max() < tol
 
 
 def test_gradients_match_finite_differences(form):
     d = torch.randn(6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1), requires_grad=True)
-    assert torch.autograd.gradcheck(lambda v: sh_basis(3, v), (d,), eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(lambda v: sh_basis(3, v, execution=FORMS[form]), (d,), eps=1e-6, atol=1e-7)
 
 
 def test_zero_direction_keeps_the_constant_band_with_finite_gradients(form):
     d = torch.zeros(2, 3, requires_grad=True)
-    B = sh_basis(3, d)
+    B = sh_basis(3, d, execution=FORMS[form])
     (B * torch.randn(B.shape)).sum().backward()
     assert torch.isfinite(d.grad).all()
     assert torch.allclose(B[:, 0], torch.full((2,), 0.28209479177387814)) and (B[:, 1:] == 0).all()
@@ -83,15 +79,13 @@ def test_gathered_form_issues_few_operators():
     d = torch.randn(100, 3, requires_grad=True)
     counts = {}
     for path in ("entries", "monomials"):
-        previous = use_compiled_paths(path == "entries")
-        sh_basis(3, d)  # constants reach the device once
+        sh_basis(3, d, execution=FORMS[path])  # constants reach the device once
         Count.n = 0
         with Count():
-            B = sh_basis(3, d)
+            B = sh_basis(3, d, execution=FORMS[path])
         forward, Count.n = Count.n, 0
         with Count():
             B.backward(torch.ones_like(B))
-        use_compiled_paths(previous)
         counts[path] = (forward, Count.n)
     assert 2 * counts["monomials"][0] < counts["entries"][0], counts
     assert 2 * counts["monomials"][1] < counts["entries"][1], counts

@@ -17,8 +17,9 @@ forward FLOPs (counted by torch's FlopCounterMode) at the best sgemm rate measur
 
 The parts table also counts, in one frame, the operators each part issues, those of them that queue device work (a
 kernel or a copy; the others are views and bare allocations) and the host waits among them (`_bench.host_waits`):
-what a GPU's host pays per frame whatever the device computes. `--accelerator-path` runs a
-GPU's torch code on a CPU (the compiled CPU paths off), so those counts are a GPU's on any machine.
+what a GPU's host pays per frame whatever the device computes. `--accelerator-path` builds the avatar with the torch
+execution (`execution.kernels=torch`: a GPU's torch code on a CPU, no compiled kernels), so those counts are a GPU's
+on any machine.
 
 `--scaling` times the same parts on random subsets of the avatar's Gaussians (all, 1/2, 1/4, 1/50; a partially folded
 corrector keeps its rows among them) and fits each part as fixed + per-Gaussian cost (least squares). The fixed part
@@ -42,17 +43,18 @@ from _bench.host_waits import OperatorCount, cuda_device_events
 
 from framework.cameras import orbit_cameras
 from framework.evaluation.frame_timing import synchronize, time_frames
+from framework.execution import COMPILED, Execution
 from framework.model.avatar import Avatar, GaussianParams
 from framework.plugins import format_table, load_plugins
 from framework.registry import BODIES, CORRECTORS, DEFORMERS, RASTERIZERS
-from framework.runtime import default_device, use_compiled_paths
+from framework.runtime import default_device
 from framework.splat.sh import sh_degree_of_bases
 from framework.types import Cameras, FrameBatch, RenderOutput
 
 SYNTHETIC_SH_DEGREE = 3
 
 
-def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
+def synthetic_avatar(body_name: str, num: int, device: str, execution: Execution = COMPILED) -> Avatar:
     from framework.model.gaussian_init import from_body_surface
 
     body = BODIES.build(body_name)
@@ -60,19 +62,21 @@ def synthetic_avatar(body_name: str, num: int, device: str) -> Avatar:
     corrector = CORRECTORS.build("latent")
     corrector.bind(body.num_pose_features)
     deformer = DEFORMERS.build("lbs", grid_resolution=32)
+    deformer.set_execution(execution)  # before the bake: its weights are the ones this execution computes
     lo, hi = body.rest_vertices.min(0).values, body.rest_vertices.max(0).values
     deformer.bind(body, torch.stack([lo - 0.1, hi + 0.1]))
     g.skin_weights = deformer.bake(g).detach()  # the real-time path uses baked weights
-    return Avatar(GaussianParams(g), RASTERIZERS.build("torch_ref"), corrector, deformer, body).to(device)
+    rasterizer = RASTERIZERS.build("torch_ref")
+    return Avatar(GaussianParams(g), rasterizer, corrector, deformer, body, execution=execution).to(device)
 
 
-def trained_avatar(ckpt: str, device: str) -> tuple[Avatar, int]:
+def trained_avatar(ckpt: str, device: str, kernels: str | None = None) -> tuple[Avatar, int]:
     """The checkpoint's avatar with baked weights, and the SH degree its stored coefficients hold: a compact model from
     `framework.export prune=true` may keep fewer bands than paper_full's 3; a short run's bands that its schedule had
     not switched on yet are zero and are timed all the same, as a full run's would be."""
     from framework.lightning.trained_model import load_module
 
-    module = load_module(ckpt, map_location=device)
+    module = load_module(ckpt, map_location=device, kernels=kernels)
     module.bake_weights()
     return module.avatar.to(device), sh_degree_of_bases(module.avatar.gaussians.gaussians().sh.shape[1])
 
@@ -186,17 +190,17 @@ def main() -> None:
     ap.add_argument(
         "--accelerator-path",
         action="store_true",
-        help="run a GPU's torch code on this CPU (compiled CPU paths off): its operators and host waits, "
-        "and at a small size the host's cost of a frame",
+        help="run a GPU's torch code on this CPU (the torch execution, no compiled kernels): its operators and host "
+        "waits, and at a small size the host's cost of a frame",
     )
     args = ap.parse_args()
-    if args.accelerator_path:
-        use_compiled_paths(False)
+    kernels = "torch" if args.accelerator_path else "auto"
     load_plugins()
     if args.ckpt:
-        avatar, degree = trained_avatar(args.ckpt, args.device)
+        avatar, degree = trained_avatar(args.ckpt, args.device, kernels)
     else:
-        avatar, degree = synthetic_avatar(args.body, args.num, args.device), SYNTHETIC_SH_DEGREE
+        execution = Execution.resolve(kernels, args.device)
+        avatar, degree = synthetic_avatar(args.body, args.num, args.device, execution), SYNTHETIC_SH_DEGREE
     avatar.eval()
     body = avatar.body
     J = body.num_input_joints

@@ -29,8 +29,9 @@ FlopCounterMode) at the best sgemm rate measured in the same run. Dataset images
 timing (a long run reads them from its in-memory cache after the first epoch); `--cold-data` times first reads
 instead.
 
-The host's cost of a GPU step, on any machine: `--accelerator-path` switches the compiled CPU kernels off and reads
-the divergence checks after the step (`divergence.deferred=true`), so the CPU runs the torch code a GPU runs, operator
+The host's cost of a GPU step, on any machine: `--accelerator-path` trains with the torch execution
+(`execution.kernels=torch`: no compiled CPU kernels) and reads the divergence checks after the step
+(`divergence.deferred=true`), so the CPU runs the torch code a GPU runs, operator
 for operator; at a tiny size the arithmetic vanishes and what is left is the cost of issuing the step's operators, the
 work a GPU's host does per step whatever the device computes:
 
@@ -62,8 +63,6 @@ UNATTRIBUTED = "Lightning loop (outside every section)"
 
 import torch  # noqa: E402  (after framework.train on purpose)
 from _bench.gemm_rate import gemm_rate, record_gemms, replay_gemms  # noqa: E402
-
-from framework.runtime import use_compiled_paths  # noqa: E402
 
 # name -> Hydra overrides; a variant whose overrides do not compose (e.g. a key an older commit lacks) is skipped.
 VARIANTS: dict[str, list[str]] = {
@@ -420,7 +419,8 @@ def run_variant(name: str, overrides: list[str], args: argparse.Namespace, split
 
     result = VariantResult(name, overrides)
     switch = args.steps // 2
-    gpu_like = ["divergence.deferred=true"] if args.accelerator_path else []  # a GPU's divergence checks too
+    # a GPU's code (no compiled kernels) and its divergence checks
+    gpu_like = ["execution.kernels=torch", "divergence.deferred=true"] if args.accelerator_path else []
     base = [f"+experiment={args.experiment}", f"profile={args.profile}", *gpu_like, *args.overrides]
     forced = [f"trainer.max_steps={args.steps}", f"stages.stage1_steps={switch}", "eval.after_fit=false"]
     try:
@@ -744,7 +744,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--accelerator-path",
         action="store_true",
-        help="switch the compiled CPU kernels off: a CPU runs the torch code a GPU runs",
+        help="build the model with the torch execution (no compiled CPU kernels): a CPU runs the torch code a GPU runs",
     )
     ap.add_argument("--json", default=None, help="write every step's timings here")
     ap.add_argument(
@@ -770,7 +770,6 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.ERROR)
     splits = SharedSplits(warm=not args.cold_data)
-    compiled_before = use_compiled_paths(not args.accelerator_path)
     threads = torch.get_num_threads()  # a variant may change it (threads=1): restored after each
     load0 = os.getloadavg()
     results: dict[str, VariantResult] = {}
@@ -795,9 +794,8 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
     load1 = os.getloadavg()
-    use_compiled_paths(compiled_before)
     ordered = list(results.values())
-    code_path = "the accelerator's (compiled CPU kernels off)" if args.accelerator_path else "this machine's own"
+    code_path = "the accelerator's (the torch execution)" if args.accelerator_path else "this machine's own"
     header = (
         f"{args.experiment}, profile {args.profile}, {args.steps} steps per variant x {args.rounds} round(s) "
         f"(stage switch at {args.steps // 2}, first {args.warmup} steps of each stage dropped); torch "

@@ -13,7 +13,7 @@ training step (the first `--warmup` steps of each stage left out).
 On a GPU machine (`--profile gpu --native -- rasterizer=gsplat`) the same count sees the copies a CPU cannot: every
 `.to(device)` or `copy_` of a host tensor to the GPU without `non_blocking`.
 
-By default the compiled CPU kernels are switched off (`framework.runtime.use_compiled_paths(False)`) and the
+By default the model is built with the torch execution (`execution.kernels=torch`: no compiled CPU kernels) and the
 divergence checks are read after the step (`divergence.deferred=true`, a GPU's default), so a CPU runs the torch code
 a GPU runs; `--native` keeps this machine's own path. One difference remains on a CPU: the rasterizer is torch_ref's
 (gsplat on a GPU syncs once per render to size its tile lists); rows from `framework/splat/` and
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--profile", default="cpu")
     ap.add_argument("--steps", type=int, default=40, help="training steps; the stage switch is forced halfway")
     ap.add_argument("--warmup", type=int, default=3, help="steps left out at the start of each stage")
-    ap.add_argument("--native", action="store_true", help="keep this machine's compiled CPU paths")
+    ap.add_argument("--native", action="store_true", help="keep this machine's own execution (compiled kernels)")
     ap.add_argument(
         "--top-operators",
         type=int,
@@ -140,10 +140,8 @@ def main(argv: list[str] | None = None) -> None:
     from hydra import compose, initialize_config_module
 
     from framework.plugins import load_plugins
-    from framework.runtime import use_compiled_paths
 
     load_plugins()
-    compiled_before = use_compiled_paths(args.native)
     import framework.lightning.module as module_mod
 
     counter = SyncCounter()
@@ -158,7 +156,7 @@ def main(argv: list[str] | None = None) -> None:
 
     cls.training_step = training_step
     out = tempfile.mkdtemp(prefix="count_syncs_")
-    gpu_like = [] if args.native else ["divergence.deferred=true"]  # a GPU's divergence checks too
+    gpu_like = [] if args.native else ["execution.kernels=torch", "divergence.deferred=true"]  # a GPU's code, checks
     overrides = [
         f"+experiment={args.experiment}",
         f"profile={args.profile}",
@@ -177,9 +175,8 @@ def main(argv: list[str] | None = None) -> None:
             train_entry.run(cfg, overrides=overrides)
     finally:
         cls.training_step = original
-        use_compiled_paths(compiled_before)
     n = len(counted)
-    path = "this machine's own" if args.native else "the accelerator's (compiled CPU kernels off)"
+    path = "this machine's own" if args.native else "the accelerator's (the torch execution)"
     print(f"\n{args.experiment}, profile {args.profile}, {path} code path: host syncs per step, mean over {n} steps")
     print(f"(steps {args.warmup}-{switch - 1} of stage 1 and {switch + args.warmup}-{args.steps - 1} of stage 2)\n")
     print("| per step | operator | where |\n|---|---|---|")

@@ -121,7 +121,7 @@ class SmplFamilyBody(BodyModel):
         T = self.bone_transforms(pose, joints)  # [B, J, 4, 4]
         v = self.rest_vertices.to(T.dtype)  # [V, 3]
         if self.posedirs is not None:
-            R = axis_angle_to_rotmat(pose)[:, 1:]  # [B, J-1, 3, 3]
+            R = axis_angle_to_rotmat(pose, self.execution)[:, 1:]  # [B, J-1, 3, 3]
             feature = (R - torch.eye(3, dtype=R.dtype, device=R.device)).flatten(1)  # [B, (J-1)*9]
             v = v + (feature @ self.posedirs.to(T.dtype)).view(pose.shape[0], -1, 3)  # [B, V, 3]
         return skin_points(v, self.skin_weights, T)

@@ -50,7 +50,9 @@ def contribution_rasterizer(avatar: Avatar) -> Rasterizer:
     from framework.registry import RASTERIZERS
 
     load_plugins()
-    return RASTERIZERS.build("torch_ref")
+    reference = RASTERIZERS.build("torch_ref")
+    reference.set_execution(avatar.execution)
+    return reference
 
 
 @torch.no_grad()

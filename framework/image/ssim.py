@@ -4,9 +4,10 @@
 convolutions of three channels each, and as many in the backward. Here the five maps are stacked along the channels and
 go through `kornia.filters.filter2d_separable` once (same kernel, same reflected borders, same combination), so the
 training step pays for two convolutions of fifteen channels. The values equal kornia's (tested in float64, with
-gradients), at about half the loss's forward time of the per-moment form (`tools/bench_train.py`). On the CPU the whole
-map, forward and backward, is compiled loops (`framework.image.compiled_ssim`: the same moments, filter, borders and
-combination). Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU path is already channels-last.
+gradients), at about half the loss's forward time of the per-moment form (`tools/bench_train.py`). The compiled form of
+the whole map, forward and backward, is `framework.kernels.ssim` (the same window, constants, borders and combination);
+the D-SSIM loss chooses between them by its execution. Evaluation keeps `kornia.metrics.ssim`, whose no-gradient CPU
+path is already channels-last.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ SIGMA = 1.5
 
 
 @functools.lru_cache(maxsize=32)
-def _window(window_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+def gaussian_window(window_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """kornia's Gaussian window [1, K], made once per size, dtype and device: built per call it is a tensor from Python
     values, on a GPU a host-to-device copy that waits for the queue (`framework.device_constants`)."""
     from kornia.filters.kernels import get_gaussian_kernel1d
@@ -29,22 +30,20 @@ def _window(window_size: int, dtype: torch.dtype, device: torch.device) -> Tenso
     return get_gaussian_kernel1d(window_size, SIGMA, device=torch.device("cpu"), dtype=dtype).to(device)
 
 
-def ssim_map(
-    img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12, compiled: bool | None = None
-) -> Tensor:
-    """Per-pixel SSIM [B, C, H, W] of two images [B, C, H, W] ('same' size, reflected borders), as kornia's.
+def ssim_constants(max_val: float) -> tuple[float, float]:
+    """(c1, c2) = ((0.01 L)^2, (0.03 L)^2) for the dynamic range L = max_val (Wang et al. 2004, kornia)."""
+    return (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
 
-    `compiled` takes the compiled loops of `framework.image.compiled_ssim` (default: for CPU float tensors), else the
+
+def ssim_map(img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12) -> Tensor:
+    """Per-pixel SSIM [B, C, H, W] of two images [B, C, H, W] ('same' size, reflected borders), as kornia's: the
     moments go through kornia's `filter2d_separable` and torch."""
     from kornia.filters import filter2d_separable  # imported on first use: loading the plugins stays light
 
-    from framework.image import compiled_ssim  # (numba, likewise)
     from framework.runtime import exact_float32
 
-    kernel = _window(window_size, img1.dtype, img1.device)  # [1, K]
-    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
-    if compiled_ssim.applies(img1) if compiled is None else compiled:
-        return compiled_ssim.ssim_map_compiled(img1, img2, kernel, c1, c2, eps)
+    kernel = gaussian_window(window_size, img1.dtype, img1.device)  # [1, K]
+    c1, c2 = ssim_constants(max_val)
     moments = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], dim=1)  # [B, 5C, H, W]
     with exact_float32():  # TF32 convolutions would move SSIM by ~1e-2 (its variances cancel digits)
         filtered = filter2d_separable(moments, kernel, kernel)

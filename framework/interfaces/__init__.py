@@ -1,5 +1,5 @@
 """One small abstract base class per component kind, with the behaviour every implementation shares (a body's
-kinematics, a metric's input check). Imports `rig`, `splat` and core only."""
+kinematics, a metric's input check, the `execution` a component runs with). Imports `rig`, `splat` and core only."""
 
 from framework.interfaces.body import BodyModel
 from framework.interfaces.corrector import Corrector

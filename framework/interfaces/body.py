@@ -7,10 +7,11 @@ from abc import ABC
 import torch
 from torch import Tensor, nn
 
+from framework.execution import ExecutionMixin
 from framework.rig.kinematics import forward_kinematics, skin_points
 
 
-class BodyModel(nn.Module, ABC):
+class BodyModel(nn.Module, ExecutionMixin, ABC):
     """A skinned body in its rest pose.
 
     Buffers every body provides (float32 unless stated):
@@ -95,7 +96,7 @@ class BodyModel(nn.Module, ABC):
                 f"got {tuple(pose.shape)}."
             )
         joints = self.rest_joints if joints is None else joints
-        return forward_kinematics(pose, joints, self.parents)[1]
+        return forward_kinematics(pose, joints, self.parents, self.execution)[1]
 
     def posed_vertices(self, pose: Tensor, joints: Tensor | None = None) -> Tensor:
         """Linear blend skinning of the rest mesh, [B, V, 3]."""

@@ -6,10 +6,11 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from framework.execution import ExecutionMixin
 from framework.types import Gaussians
 
 
-class Corrector(nn.Module, ABC):
+class Corrector(nn.Module, ExecutionMixin, ABC):
     """Maps (target pose, per-Gaussian code) to corrected canonical Gaussians.
 
     Contract: positions are never changed; the pose is gradient-stopped by the corrector itself; opacity and scale

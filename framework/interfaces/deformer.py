@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from torch import Tensor, nn
 
+from framework.execution import ExecutionMixin
 from framework.interfaces.body import BodyModel
 from framework.types import Gaussians
 
@@ -21,7 +22,7 @@ class DeformOutput:
     sh_frames: Tensor | None = None
 
 
-class Deformer(nn.Module, ABC):
+class Deformer(nn.Module, ExecutionMixin, ABC):
     """Everything the engine asks of a deformer is declared here with a default, so a deformer that implements only
     `forward` trains; one that also implements `bake` gets weight baking, the viewer's and exporter's baked path and
     compaction; one with a part that trains in stage 2 only reads `enabled`."""
@@ -29,9 +30,6 @@ class Deformer(nn.Module, ABC):
     registry_name: str = ""
     #: Whether the part that trains in stage 2 only (the paper's F_dw) is on; the stage switch sets it.
     enabled: bool = True
-    #: Set by the avatar to its rasterizer's `compiled_inference`: a deformer may then skin without gradients with
-    #: the same compiled CPU kernels; ignoring it is always correct.
-    compiled_inference: bool = False
     #: How skinning treats the blended matrix's stretch (`framework.rig.lbs.STRETCH_MODES`), for exported packages.
     stretch: str = "none"
     #: How Gaussian centres move (`framework.rig.lbs.CENTRE_MODES`), for exported packages.

@@ -13,8 +13,10 @@ from typing import Any
 import torch
 from torch import nn
 
+from framework.execution import ExecutionMixin
 
-class Densifier(ABC):
+
+class Densifier(ExecutionMixin, ABC):
     registry_name: str = ""
 
     @abstractmethod

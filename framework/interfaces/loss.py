@@ -6,10 +6,11 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from framework.execution import ExecutionMixin
 from framework.types import FrameBatch, RenderOutput
 
 
-class Loss(nn.Module, ABC):
+class Loss(nn.Module, ExecutionMixin, ABC):
     registry_name: str = ""
     #: deformer aux outputs this term reads (e.g. "weight_std"); a deformer computes only those some term reads
     aux_keys: tuple[str, ...] = ()

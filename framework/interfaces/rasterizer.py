@@ -28,6 +28,8 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor
 
+from framework.execution import ExecutionMixin
+
 # The contract's numbers, defined once beside the splatting math that applies them (re-exported for backends).
 from framework.splat.contract import (  # noqa: F401
     ALPHA_MAX,
@@ -42,7 +44,7 @@ from framework.splat.contract import (  # noqa: F401
 from framework.types import BlendWeights, Cameras, RenderOutput
 
 
-class Rasterizer(ABC):
+class Rasterizer(ExecutionMixin, ABC):
     """A differentiable Gaussian splatting backend."""
 
     #: Set by the registry decorator.
@@ -59,19 +61,6 @@ class Rasterizer(ABC):
     #: implementation. The conformance suite then widens its extreme-scene tolerances by that term
     #: (`framework.testing.conformance.extreme_tolerances`); everywhere else its checks are the same.
     conic_from_float32_covariance: bool = False
-
-    #: True for a backend that renders with compiled CPU kernels: an avatar then also takes its view colour (and a
-    #: deformer its skinning without gradients) from the compiled kernels where `compiled` or
-    #: `compiled_with_gradients` says the render of those tensors runs them.
-    compiled_inference: bool = False
-
-    def compiled(self, tensors: tuple[Tensor, ...]) -> bool:
-        """Whether a render of these tensors, without gradients, runs the compiled kernels."""
-        return False
-
-    def compiled_with_gradients(self, tensors: tuple[Tensor, ...]) -> bool:
-        """Whether a training render of these tensors runs its projection and compositing compiled."""
-        return False
 
     @abstractmethod
     def render(

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
+from framework.execution import Execution
 from framework.guards import PSNR_MSE_FLOOR
 from framework.lightning.deferred_checks import DeferredChecks, defers
 from framework.lightning.divergence import (
@@ -30,7 +31,7 @@ from framework.lightning.divergence import (
 )
 from framework.model.avatar import GAUSSIAN_KEYS, Avatar, GaussianParams, PoseRefiner
 from framework.model.losses import CompositeLoss
-from framework.runtime import cpu_threads
+from framework.runtime import cpu_threads, default_device
 from framework.types import FrameBatch, Gaussians
 
 
@@ -39,13 +40,26 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
     return -10 * torch.log10(mse)
 
 
+def training_device(cfg: dict[str, Any]) -> str:
+    """The device a run's config trains on: `trainer.accelerator`, where auto (or gpu) is the GPU when there is one,
+    as Lightning picks it."""
+    accelerator = str((cfg.get("trainer") or {}).get("accelerator", "auto"))
+    return "cpu" if accelerator == "cpu" else default_device()
+
+
 class SplatModule(L.LightningModule):
-    def __init__(self, cfg: dict[str, Any], data_info: dict[str, Any]) -> None:
+    def __init__(self, cfg: dict[str, Any], data_info: dict[str, Any], device: str | None = None) -> None:
+        """`device`: where the model will run (default: where its config trains), which `execution.kernels: auto`
+        is resolved against."""
         super().__init__()
         self.save_hyperparameters({"cfg": cfg, "data_info": data_info})
         self.automatic_optimization = False
         self.cfg = cfg
         self.data_info = data_info
+        try:  # how every component runs (torch, or the compiled CPU kernels): one choice, handed to each
+            self.execution = Execution.from_config(cfg.get("execution"), device or training_device(cfg))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         bounds = torch.tensor(data_info["bounds"], dtype=torch.float32)  # [2, 3]
         self.scene_scale = float((bounds[1] - bounds[0]).norm() / 2)
 
@@ -83,10 +97,13 @@ class SplatModule(L.LightningModule):
             body,
             refiner,
             background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
+            execution=self.execution,
         )
-        self.loss_fn = CompositeLoss(cfg["loss"]["terms"])
+        self.loss_fn = CompositeLoss(cfg["loss"]["terms"], self.execution)
         deformer.use_aux(self.loss_fn.aux_keys)  # e.g. no L_w term: the deformer skips the six-point weight lookups
         self.densifier = build_component("densifier", cfg["densifier"])
+        if self.densifier is not None:
+            self.densifier.set_execution(self.execution)
         self.densifier_state: dict[str, Any] = (
             self.densifier.initialize_state(scene_scale=self.scene_scale) if self.densifier else {}
         )

@@ -14,9 +14,10 @@ from framework.errors import SplatrigError
 from framework.evaluation.run_cost import TIMING_SPLITS, render_fps, timing_split, use_rasterizer
 
 
-def load_module(ckpt: str | Path, map_location: str | None = None):
+def load_module(ckpt: str | Path, map_location: str | None = None, kernels: str | None = None):
     """The trained model of a checkpoint in eval mode, rebuilt from the config stored in it (errors name the file and
-    the fix), on `map_location` (default: the GPU when there is one, else the CPU).
+    the fix), on `map_location` (default: the GPU when there is one, else the CPU), with the stored
+    `execution.kernels` (or `kernels`: auto | torch | compiled) resolved for that device.
 
     A model trained with gsplat (the GPU default) renders on a CPU with `numba`: gsplat draws CUDA tensors only, and
     every backend renders the same function (the conformance suite). The stored config keeps `gsplat`, so a file this
@@ -44,7 +45,9 @@ def load_module(ckpt: str | Path, map_location: str | None = None):
             f"[splatrig] ckpt={ckpt}: trained with rasterizer=gsplat, which renders CUDA tensors only; rendering on "
             f"the {device.type} with numba (the same function)"
         )
-    module = SplatModule(built, hparams["data_info"])
+    if kernels is not None:  # e.g. torch: a GPU's code on this CPU (tools' --accelerator-path)
+        built = {**built, "execution": {**(built.get("execution") or {}), "kernels": kernels}}
+    module = SplatModule(built, hparams["data_info"], device=str(device))
     if built is not cfg:
         module.cfg = module.hparams["cfg"] = cfg
     module.on_load_checkpoint(checkpoint)  # resizes the Gaussians to the stored count, restores the stage

@@ -1,2 +1,3 @@
 """The avatar: canonical Gaussians -> corrector -> deformer -> rasterizer, with Gaussian initialisation, the corrector
-MLP, positional encoding, the composite loss and optimizer surgery. Imports rig, splat, image, interfaces and core."""
+MLP, positional encoding, the composite loss and optimizer surgery. Imports kernels (where the model's execution
+compiles), rig, splat, image, interfaces and core."""

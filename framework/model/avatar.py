@@ -1,7 +1,8 @@
 """Composes canonical Gaussians -> corrector -> deformer -> rasterizer, the one forward pass every experiment runs.
 
 Static scenes use the same path with no body, the `none` corrector and the `identity` deformer, so `static_fit` and
-`paper_full` share every line of training code.
+`paper_full` share every line of training code. The avatar is built with the model's execution (`framework.execution`)
+and hands it to every part it holds, so how each runs (torch, or the compiled CPU kernels) is one choice.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from framework.execution import COMPILED, Execution
 from framework.interfaces import BodyModel, Corrector, Deformer, Rasterizer
 from framework.splat.sh import view_colour_dc
 from framework.types import FrameBatch, Gaussians, RenderOutput
@@ -125,12 +127,17 @@ class Avatar(nn.Module):
         body: BodyModel | None = None,
         pose_refiner: PoseRefiner | None = None,
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        execution: Execution = COMPILED,
     ) -> None:
         super().__init__()
+        self.execution = execution
+        for part in (corrector, deformer, body):
+            if part is not None:
+                part.set_execution(execution)
         self.gaussians = gaussians
         self.corrector = corrector
         self.deformer = deformer
-        self.rasterizer = rasterizer  # after the deformer: the setter tells it whether to skin compiled
+        self.rasterizer = rasterizer  # the setter hands it the execution
         self.body = body
         self.pose_refiner = pose_refiner
         self.register_buffer("background", torch.tensor(background, dtype=torch.float32), persistent=False)
@@ -143,14 +150,10 @@ class Avatar(nn.Module):
 
     @rasterizer.setter
     def rasterizer(self, backend: Rasterizer) -> None:
-        """Swap the backend (viewer, benchmarks, `framework.evaluation.run_cost.use_rasterizer`). A backend with
-        `compiled_inference` (numba) also switches an LBS deformer to its compiled skinning for renders without
-        gradients, so the whole CPU frame runs compiled; any other backend switches it back."""
+        """Swap the backend (viewer, benchmarks, `framework.evaluation.run_cost.use_rasterizer`); it runs with the
+        avatar's execution. No other part changes: how they run was chosen with the execution."""
+        backend.set_execution(self.execution)
         self._rasterizer = backend
-        self._posed_cache = None  # posed by the other skinning path (the same values, to rounding)
-        deformer = self._modules.get("deformer")
-        if deformer is not None:
-            deformer.compiled_inference = bool(backend.compiled_inference)
 
     def _pose_key(self, batch: FrameBatch) -> bytes:
         parts = [batch.frame[:1]]
@@ -224,19 +227,11 @@ class Avatar(nn.Module):
 
     def _view_colour(self, posed: Gaussians, frames: Tensor, batch: FrameBatch, sh_degree: int) -> Tensor:
         """[N, 1, 3] DC coefficients holding each Gaussian's colour towards the one camera (framework.splat.sh);
-        compiled (`framework.splat.compiled_sh`, with its backward in training) when the rasterizer renders compiled."""
+        compiled (`framework.kernels.sh_colours`, with its backward in training) where the execution compiles them."""
         centre = batch.cameras.centers().to(posed.means)  # [1, 3]
         dirs = posed.means - centre  # [N, 3]
-        if self._compiles_view_colour(posed.sh, dirs, frames):
-            from framework.splat.compiled_sh import view_colour_dc_compiled  # imports numba: first use only
+        if self.execution.compiled(posed.sh, dirs, frames):
+            from framework.kernels.sh_colours import view_colour_dc_compiled  # imports numba: first use only
 
             return view_colour_dc_compiled(sh_degree, posed.sh, dirs, frames)
-        return view_colour_dc(sh_degree, posed.sh, dirs, frames)
-
-    def _compiles_view_colour(self, sh: Tensor, dirs: Tensor, frames: Tensor) -> bool:
-        """Whether the view colour takes the compiled loops: a backend with `compiled_inference` (numba) that renders
-        these tensors compiled, without gradients (`compiled`) or with them (`compiled_with_gradients`: CPU float)."""
-        backend, tensors = self._rasterizer, (sh, dirs, frames)
-        if not backend.compiled_inference:
-            return False
-        return bool(backend.compiled(tensors) or backend.compiled_with_gradients(tensors))
+        return view_colour_dc(sh_degree, posed.sh, dirs, frames, self.execution)

@@ -17,15 +17,16 @@ import torch
 from torch import Tensor, nn
 
 from framework.device_constants import constant_on
+from framework.execution import Execution
 from framework.geometry import IDENTITY_QUAT, quat_multiply
 from framework.interfaces.corrector import Corrector
-from framework.runtime import cpu_float
 from framework.types import Gaussians, num_sh_coeffs
 
 
-def _fuses_layers(x: Tensor) -> bool:
+def _fuses_layers(x: Tensor, execution: Execution) -> bool:
     """Whether F_a runs its layers through oneDNN's fused linear (`torch.ops.mkldnn._linear_pointwise`): without
-    gradients (that op has no backward), on CPU float32, where the build has it.
+    gradients (that op has no backward), on CPU float32 that `execution` runs in the CPU's own forms, where the build
+    has it.
 
     Why: a novel-pose frame on the CPU pays F_a in full, and there the plain layers cost more than their products. The
     bias is copied into each [M, 128] output before the product, the ReLU is a second pass over it, and the 11-wide
@@ -34,7 +35,7 @@ def _fuses_layers(x: Tensor) -> bool:
     float32 rounding."""
     return (
         not torch.is_grad_enabled()
-        and cpu_float(x)  # a CPU tensor, and the compiled CPU paths not switched off (a GPU's code on a CPU)
+        and execution.compiled(x)  # a CPU tensor, and not the torch execution (a GPU's code on a CPU)
         and x.dtype == torch.float32
         and _FUSED_LINEAR_AVAILABLE
     )
@@ -140,7 +141,7 @@ class MLPCorrector(Corrector):
                 )
             f = f.index_select(0, rows)  # [M, F]
         pose_h = self.pose_in(pose.to(f.dtype))  # [H]
-        if _fuses_layers(f):
+        if _fuses_layers(f, self.execution):
             out = self._mlp_fused(f, pose_h)
         else:
             h = self.feature_in(f) + pose_h  # [M, H]
@@ -172,6 +173,6 @@ class MLPCorrector(Corrector):
         return gaussians.replace(
             opacity_logits=gaussians.opacity_logits + d[:, 0],
             log_scales=gaussians.log_scales + d[:, 1:4],
-            quats=quat_multiply(d_rot, gaussians.quats),
+            quats=quat_multiply(d_rot, gaussians.quats, execution=self.execution),
             sh=sh,
         )

@@ -13,7 +13,6 @@ from framework.rig.fold import fold_weights
 from framework.rig.lbs import CENTRE_MODES, POLAR_DTYPES, STRETCH_MODES, lbs_with_sh_frames, six_points, weight_std
 from framework.rig.sh_rotation import rotate_sh
 from framework.rig.weight_field import WeightField, build_weight_grid
-from framework.runtime import cpu_float
 from framework.types import Gaussians
 
 
@@ -27,12 +26,16 @@ class LBSDeformerBase(Deformer):
     baked weights (nothing to smooth). On a body with frozen joints (`BodyModel.unfolded_skinning`) it is measured
     over the whole skeleton, as without freezing: the six points' weights from a second field over every joint of the
     full skeleton (the LBS field is its folded sums), plus the change F_dw makes on the kept joints. `centres` chooses
-    how centres move (`framework.rig.lbs.apply_lbs`). `compiled_weights`: on the CPU, the seven points' lookup, F_dw's
-    combination and L_w run as compiled loops (`framework.rig.compiled_weights`; the same values, to float32
-    rounding), and `bake` stores what they give. `compiled_skinning`: in training on the CPU, everything of the LBS
-    after the blend's matrix product (the polar decomposition, the quaternions, centres and stretch) runs as compiled
-    loops with a hand-written backward (`framework.rig.compiled_skinning.lbs_with_sh_frames_trainable`; float64
-    inside, so the polar iteration is float64 whatever `polar_dtype` says).
+    how centres move (`framework.rig.lbs.apply_lbs`).
+
+    Where the execution (`framework.execution`) compiles the tensors (CPU float32/float64 under the compiled kernels):
+    `compiled_weights` runs the seven points' lookup, F_dw's combination and L_w as compiled loops
+    (`framework.kernels.skin_weights`; the same values, to float32 rounding), and `bake` stores what they give;
+    `compiled_skinning` runs everything of a training step's LBS after the blend's matrix product (the polar
+    decomposition, the quaternions, centres and stretch) as compiled loops with a hand-written backward
+    (`framework.kernels.skinning.lbs_with_sh_frames_trainable`; float64 inside, so the polar iteration is float64
+    whatever `polar_dtype` says); and baked weights without gradients (inference) are skinned by the same kernels
+    (`lbs_with_sh_frames_compiled`: the same values in float64, cast back), whatever the rasterizer.
     """
 
     def __init__(
@@ -60,9 +63,6 @@ class LBSDeformerBase(Deformer):
         self.report_weight_std = weight_std
         self.field: WeightField | None = None
         self.unfolded: WeightField | None = None  # frozen joints: the field over the full skeleton, for L_w only
-        # Set by the avatar when its rasterizer runs compiled (numba): baked weights without gradients on the CPU are
-        # then skinned by `framework.rig.compiled_skinning` (the same values in float64, cast back).
-        self.compiled_inference = False
 
     def bind(self, body: BodyModel | None, bounds: Tensor | None) -> None:
         if body is None or bounds is None:
@@ -103,7 +103,7 @@ class LBSDeformerBase(Deformer):
 
     def residual(self, points: Tensor) -> tuple[str, Tensor | None]:
         """How `refine` changes the grid weights at `points` [..., 3]: (combination, F_dw's residual [..., J]), one of
-        the combinations of `framework.rig.compiled_weights.COMBINE_MODES`; ("none", None) without F_dw."""
+        the combinations of `framework.kernels.skin_weights.COMBINE_MODES`; ("none", None) without F_dw."""
         return "none", None
 
     @property
@@ -120,7 +120,7 @@ class LBSDeformerBase(Deformer):
         """points [N, 7, 3] (the centre, then the six L_w points) -> (weights [N, J] at the centres, L_w [N])."""
         if self.unfolded is None:
             if self._weights_compiled(points):
-                from framework.rig.compiled_weights import smooth_weights_compiled  # imports numba: first use only
+                from framework.kernels.skin_weights import smooth_weights_compiled  # imports numba: first use only
 
                 combine, dw = self.residual(points)  # dw [N, 7, J] or None
                 return smooth_weights_compiled(self.field, points, dw, combine, self.residual_eps)
@@ -138,24 +138,26 @@ class LBSDeformerBase(Deformer):
         return w7[:, 0], weight_std(w7[:, 1:]) + folded_groups
 
     def _weights_compiled(self, points: Tensor) -> bool:
-        """Whether `smooth_weights` takes the compiled loops: switched on, CPU, float32/64, a partition-of-unity grid
-        (the only kind `framework.rig.weight_field` builds from a body; other grids are clamped and renormalised)."""
-        return self.compiled_weights and cpu_float(points) and self.field.partition_of_unity
+        """Whether `smooth_weights` takes the compiled loops: switched on, compiled by the execution, a
+        partition-of-unity grid (the only kind `framework.rig.weight_field` builds from a body; other grids are
+        clamped and renormalised)."""
+        return self.compiled_weights and self.execution.compiled(points) and self.field.partition_of_unity
 
     def _skins_compiled(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
-        """Whether this call takes the compiled skinning: switched on (and the compiled CPU paths not switched off),
-        baked weights, CPU, no gradient asked."""
-        if not self.compiled_inference or gaussians.skin_weights is None or not cpu_float(w):
+        """Whether this call takes the compiled skinning without gradients: baked weights that the execution
+        compiles, no gradient asked (inference)."""
+        if gaussians.skin_weights is None or not self.execution.compiled(w):
             return False
         tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
     def _skins_compiled_with_grad(self, gaussians: Gaussians, w: Tensor, bone_transforms: Tensor) -> bool:
-        """Whether this call takes the compiled skinning with gradients (training): switched on, CPU, float32/64."""
+        """Whether this call takes the compiled skinning with gradients (training): switched on, every tensor
+        compiled by the execution."""
         tensors = (gaussians.means, gaussians.quats, gaussians.log_scales, w, bone_transforms)
         return (
             self.compiled_skinning
-            and all(cpu_float(t) for t in tensors)
+            and self.execution.compiled(*tensors)
             and torch.is_grad_enabled()
             and any(t.requires_grad for t in tensors)
         )
@@ -187,22 +189,25 @@ class LBSDeformerBase(Deformer):
             aux["weight_std"] = w.new_zeros(gaussians.num)
         elif self.report_weight_std and torch.is_grad_enabled():
             # one lookup for the centre and the six L_w points: the field (and F_dw) cost is per call, then per point
-            points = torch.cat([gaussians.means.unsqueeze(-2), six_points(gaussians)], dim=-2)  # [N, 7, 3]
+            centre = gaussians.means.unsqueeze(-2)  # [N, 1, 3]
+            points = torch.cat([centre, six_points(gaussians, self.execution)], dim=-2)  # [N, 7, 3]
             w, aux["weight_std"] = self.smooth_weights(points)  # [N, J], [N]
         else:
             w = self.weights(gaussians.means)  # [N, J]
         if self._skins_compiled(gaussians, w, bone_transforms):
-            from framework.rig.compiled_skinning import lbs_with_sh_frames_compiled  # imports numba: first use only
+            from framework.kernels.skinning import lbs_with_sh_frames_compiled  # imports numba: first use only
 
             posed, R = lbs_with_sh_frames_compiled(gaussians, w, bone_transforms, self.stretch, self.centres)
         elif self._skins_compiled_with_grad(gaussians, w, bone_transforms):
-            from framework.rig.compiled_skinning import lbs_with_sh_frames_trainable  # imports numba: first use only
+            from framework.kernels.skinning import lbs_with_sh_frames_trainable  # imports numba: first use only
 
             posed, R = lbs_with_sh_frames_trainable(gaussians, w, bone_transforms, self.stretch, self.centres)
         else:
-            posed, R = lbs_with_sh_frames(gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres)
+            posed, R = lbs_with_sh_frames(
+                gaussians, w, bone_transforms, self.stretch, self.polar_dtype, self.centres, self.execution
+            )
         if posed.sh.shape[1] == 1:  # degree 0 does not turn
             return DeformOutput(posed=posed, weights=w, aux=aux)
         if defer_sh:
             return DeformOutput(posed=posed, weights=w, aux=aux, sh_frames=R)
-        return DeformOutput(posed=posed.replace(sh=rotate_sh(posed.sh, R)), weights=w, aux=aux)
+        return DeformOutput(posed=posed.replace(sh=rotate_sh(posed.sh, R, self.execution)), weights=w, aux=aux)

@@ -18,11 +18,14 @@ from typing import Any
 
 from torch import Tensor, nn
 
+from framework.execution import COMPILED, Execution
 from framework.types import FrameBatch, RenderOutput
 
 
 class CompositeLoss(nn.Module):
-    def __init__(self, terms: Mapping[str, Mapping[str, Any]]) -> None:
+    """The terms of a loss config, each built with the model's execution (`framework.execution`)."""
+
+    def __init__(self, terms: Mapping[str, Mapping[str, Any]], execution: Execution = COMPILED) -> None:
         super().__init__()
         from framework.plugins import load_plugins
         from framework.registry import LOSSES
@@ -44,6 +47,7 @@ class CompositeLoss(nn.Module):
             if weight == 0.0:
                 continue
             self.terms[key] = LOSSES.build(name, **kwargs)
+            self.terms[key].set_execution(execution)
             self.weights[key] = weight
 
     @property
@@ -52,11 +56,11 @@ class CompositeLoss(nn.Module):
         return frozenset(k for term in self.terms.values() for k in term.aux_keys)
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> CompositeLoss:
+    def from_config(cls, cfg: Mapping[str, Any], execution: Execution = COMPILED) -> CompositeLoss:
         """Build from a loss group config (`{terms: {...}}`)."""
         if "terms" not in cfg:
             raise ValueError(f"loss config: expected a 'terms' mapping, found keys {sorted(cfg)}. See conf/loss/.")
-        return cls(cfg["terms"])
+        return cls(cfg["terms"], execution)
 
     def forward(
         self, render: RenderOutput, batch: FrameBatch, aux: dict[str, Tensor] | None = None

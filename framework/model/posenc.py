@@ -13,24 +13,25 @@ import math
 import torch
 from torch import Tensor
 
+from framework.execution import COMPILED, Execution
+
 
 def posenc_dim(num_freqs: int, in_dim: int = 3) -> int:
     """Output width of `posenc` for `in_dim` inputs."""
     return in_dim * (1 + 2 * num_freqs)
 
 
-def posenc(x: Tensor, num_freqs: int, compiled: bool | None = None) -> Tensor:
+def posenc(x: Tensor, num_freqs: int, execution: Execution = COMPILED) -> Tensor:
     """x [..., D] -> [..., D * (1 + 2 * num_freqs)], ordered [x, sin f0, cos f0, sin f1, cos f1, ...] (each block D).
 
-    `compiled` takes the compiled loop of `framework.model.compiled_posenc` (default: for CPU float tensors), which
-    gives the same values from one sine and cosine per coordinate; false keeps the torch operations below."""
+    Where `execution` compiles x, the compiled loop of `framework.kernels.posenc` (the same values from one sine and
+    cosine per coordinate); otherwise the torch operations below."""
     if num_freqs < 0:
         raise ValueError(f"posenc: num_freqs must be >= 0, got {num_freqs}.")
-    if num_freqs:
-        from framework.model import compiled_posenc  # imports numba: first use only
+    if num_freqs and execution.compiled(x):
+        from framework.kernels.posenc import posenc_compiled  # imports numba: first use only
 
-        if compiled_posenc.applies(x) if compiled is None else compiled:
-            return compiled_posenc.posenc_compiled(x, num_freqs)
+        return posenc_compiled(x, num_freqs)
     feats = [x]
     for k in range(num_freqs):
         arg = (2.0**k * math.pi) * x

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on, values_on
+from framework.execution import COMPILED, Execution
 from framework.geometry import axis_angle_to_rotmat
 
 _HOMOGENEOUS_ROW = torch.tensor([0.0, 0.0, 0.0, 1.0])  # the last row of every 4x4 transform
@@ -122,14 +123,17 @@ def forward_kinematics_rotmat(rotations: Tensor, joints: Tensor, parents: Tensor
     return G, G @ to_rest  # T = G @ translate(-j)
 
 
-def forward_kinematics(pose: Tensor, joints: Tensor, parents: Tensor | list[int]) -> tuple[Tensor, Tensor]:
+def forward_kinematics(
+    pose: Tensor, joints: Tensor, parents: Tensor | list[int], execution: Execution = COMPILED
+) -> tuple[Tensor, Tensor]:
     """pose [B, J, 3] axis-angle, joints [B, J, 3] or [J, 3] rest positions, parents [J] (-1 at the root)
     -> (G [B, J, 4, 4] global joint transforms, T [B, J, 4, 4] rest-to-posed skinning transforms = G @ translate(-j)).
 
-    Differentiable in pose and joints, finite gradients at zero and pi rotations (Rodrigues with a Taylor branch)."""
+    Differentiable in pose and joints, finite gradients at zero and pi rotations (Rodrigues with a Taylor branch).
+    `execution`: which torch form the rotations take (`framework.geometry.few_kernels`)."""
     if pose.dim() != 3 or pose.shape[-1] != 3:
         raise ValueError(f"pose must be [B, J, 3] axis-angle; got shape {tuple(pose.shape)}.")
-    return forward_kinematics_rotmat(axis_angle_to_rotmat(pose), joints, parents)
+    return forward_kinematics_rotmat(axis_angle_to_rotmat(pose, execution), joints, parents)
 
 
 def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.execution import COMPILED, Execution
 from framework.geometry import (
     products_3x3,
     quat_multiply,
@@ -54,10 +55,10 @@ def blended_affine(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]
     return P[:, :3], P[:, 3]
 
 
-def _rotations(A: Tensor, dtype: torch.dtype | None) -> tuple[Tensor, Tensor]:
+def _rotations(A: Tensor, dtype: torch.dtype | None, execution: Execution) -> tuple[Tensor, Tensor]:
     """A [3, 3, N] -> R [3, 3, N] of A = R S and its quaternions [4, N]."""
     N = A.shape[-1]
-    R = polar_rotation_entry_major(A.reshape(9, N), dtype)  # [9, N]
+    R = polar_rotation_entry_major(A.reshape(9, N), dtype, execution)  # [9, N]
     return R.view(3, 3, N), rotmat_to_quat_entry_major(R)
 
 
@@ -68,14 +69,15 @@ def apply_lbs(
     stretch: str = "diag",
     polar_dtype: torch.dtype | None = None,
     centres: str = "blended",
+    execution: Execution = COMPILED,
 ) -> Gaussians:
     """Pose canonical Gaussians with blend weights [N, J] and rest-to-posed transforms [J, 4, 4], SH rotated.
 
     `polar_dtype`: the least precision of the polar decomposition's iteration (float64 inputs always iterate in float64;
     default: the inputs' dtype; see framework.rig.polar). `centres`: blended moves centres by A x + t (exact LBS),
-    rigid by R x + t (the paper's eq. 4)."""
-    posed, R = lbs_with_sh_frames(gaussians, weights, transforms, stretch, polar_dtype, centres)
-    return posed.replace(sh=rotate_sh(posed.sh, R))
+    rigid by R x + t (the paper's eq. 4). `execution`: which torch forms the rotation helpers take."""
+    posed, R = lbs_with_sh_frames(gaussians, weights, transforms, stretch, polar_dtype, centres, execution)
+    return posed.replace(sh=rotate_sh(posed.sh, R, execution))
 
 
 def lbs_with_sh_frames(
@@ -85,6 +87,7 @@ def lbs_with_sh_frames(
     stretch: str = "diag",
     polar_dtype: torch.dtype | None = None,
     centres: str = "blended",
+    execution: Execution = COMPILED,
 ) -> tuple[Gaussians, Tensor]:
     """`apply_lbs` without the SH rotation: (posed Gaussians whose SH is still canonical, R [N, 3, 3])."""
     if stretch not in STRETCH_MODES:
@@ -92,24 +95,25 @@ def lbs_with_sh_frames(
     if centres not in CENTRE_MODES:
         raise ValueError(f"lbs: centres must be one of {CENTRE_MODES}, got '{centres}'.")
     A, t = blended_affine(weights, transforms)  # [3, 3, N], [3, N]
-    R, qR = _rotations(A, None if polar_dtype is None else torch.promote_types(A.dtype, polar_dtype))
+    R, qR = _rotations(A, None if polar_dtype is None else torch.promote_types(A.dtype, polar_dtype), execution)
     moves = A if centres == "blended" else R
     means = ((moves * gaussians.means.t().unsqueeze(0)).sum(1) + t).t().contiguous()  # [N, 3]
     q = gaussians.quats.t().contiguous()  # [4, N]
     # normalised first: a quaternion below NORM_EPS means the identity, and the product must still turn with R
-    quats = quat_multiply(qR, quat_normalize(q, dim=0), dim=0).t().contiguous()  # [N, 4]
+    unit = quat_normalize(q, dim=0, execution=execution)  # [4, N]
+    quats = quat_multiply(qR, unit, dim=0, execution=execution).t().contiguous()  # [N, 4]
     log_scales = gaussians.log_scales
     if stretch == "diag":
-        Q = quat_to_rotmat_entry_major(q).view(3, 3, -1)  # [3, 3, N], columns = the Gaussian's axes
+        Q = quat_to_rotmat_entry_major(q, execution).view(3, 3, -1)  # [3, 3, N], columns = the Gaussian's axes
         # k_l = a_l^T S a_l with S = sym(R^T A): a quadratic form sees only the symmetric part, so R^T A will do
         k = (Q * products_3x3(products_3x3(R, A, transpose_x=True), Q)).sum(0)  # [3, N]
         log_scales = log_scales + torch.log(k.clamp_min(LBS_MIN_STRETCH)).t()  # [N, 3]
     return gaussians.replace(means=means, quats=quats, log_scales=log_scales), R.permute(2, 0, 1)
 
 
-def six_points(gaussians: Gaussians) -> Tensor:
+def six_points(gaussians: Gaussians, execution: Execution = COMPILED) -> Tensor:
     """The six points x +- s_l a_l along each Gaussian axis, [N, 6, 3] (the L_w sampling pattern)."""
-    Q = quat_to_rotmat(gaussians.quats)  # [N, 3, 3]
+    Q = quat_to_rotmat(gaussians.quats, execution)  # [N, 3, 3]
     axes = Q * gaussians.scales.unsqueeze(-2)  # [N, 3, 3], column l = s_l a_l
     offsets = torch.cat([axes, -axes], dim=-1).transpose(-1, -2)  # [N, 6, 3]
     return gaussians.means.unsqueeze(-2) + offsets

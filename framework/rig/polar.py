@@ -27,9 +27,9 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
+from framework.execution import COMPILED, Execution
 from framework.geometry import products_3x3
 from framework.guards import POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
-from framework.runtime import cpu_float
 
 _NEWTON_MAX_ITERS = 30
 # The iteration ends when the step it just took, d = max |X_k+1 - X_k|, predicts a next step below this tolerance. The
@@ -151,19 +151,25 @@ def _compute_dtype(X: Tensor, dtype: torch.dtype | None) -> torch.dtype:
 
 
 @torch.no_grad()
-def polar_rotation_values(A: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
+def polar_rotation_values(
+    A: Tensor, method: str = "newton", dtype: torch.dtype | None = None, execution: Execution = COMPILED
+) -> Tensor:
     """Rotation factor of A [..., 3, 3] (values only), returned in A's dtype.
 
     method="newton": Higham's iteration in `dtype` (default: A's dtype, at least float32), float64 SVD only for
     det <= 0 or nearly singular inputs; method="svd": float64 SVD for every matrix (the reference). Both agree to
     ~1e-14 in float64 and ~1e-6 with a float32 iteration.
     """
-    return _polar_values_entry_major(A.detach().reshape(-1, 9).t(), method, dtype).t().reshape(A.shape)
+    X = A.detach().reshape(-1, 9).t()  # [9, M]
+    return _polar_values_entry_major(X, method, dtype, execution).t().reshape(A.shape)
 
 
 @torch.no_grad()
-def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dtype | None = None) -> Tensor:
-    """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M]."""
+def _polar_values_entry_major(
+    X: Tensor, method: str = "newton", dtype: torch.dtype | None = None, execution: Execution = COMPILED
+) -> Tensor:
+    """`polar_rotation_values` on entry-major matrices: X [9, M] (entry 3i + j of each matrix) -> R [9, M].
+    `execution`: a matrix batch it does not compile takes an accelerator's routing (one host read)."""
     if method not in ("svd", "newton"):
         raise ValueError(f"polar: method must be 'svd' or 'newton', got '{method}'.")
     out_dtype, M = X.dtype, X.shape[1]
@@ -175,9 +181,9 @@ def _polar_values_entry_major(X: Tensor, method: str = "newton", dtype: torch.dt
         return _rotation_svd(_finite_or_identity(Xc).t().reshape(-1, 3, 3)).reshape(M, 9).t().to(out_dtype)
     C, det, norm_sq, good = _newton_inputs(Xc)
     # The common case: `good` is False for any matrix with a NaN or inf entry, or whose squares overflow (its det or
-    # scale is then NaN or inf), so all-good also means all finite. On an accelerator (where the CPU's compiled paths
-    # are off) it costs one host read in all; on a CPU a read per step, each free, and no step more than needed.
-    if not cpu_float(Xc):
+    # scale is then NaN or inf), so all-good also means all finite. On an accelerator (and on a CPU under the torch
+    # execution) it costs one host read in all; on a CPU a read per step, each free, and no step more than needed.
+    if not execution.compiled(Xc):
         R = _rotation_newton_one_read(Xc, C, det, norm_sq, good)
         if R is not None:
             return R.to(out_dtype)
@@ -213,14 +219,14 @@ def _skew_entry_major(v: Tensor) -> Tensor:
 
 class _PolarRotation(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, X: Tensor, dtype: torch.dtype | None) -> Tensor:
-        R = _polar_values_entry_major(X, dtype=dtype)
+    def forward(ctx, X: Tensor, dtype: torch.dtype | None, execution: Execution) -> Tensor:
+        R = _polar_values_entry_major(X, dtype=dtype, execution=execution)
         ctx.save_for_backward(X, R)
         return R
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_R: Tensor) -> tuple[Tensor, None]:
+    def backward(ctx, grad_R: Tensor) -> tuple[Tensor, None, None]:
         X, R = ctx.saved_tensors
         K = X.shape[1]
         A64, R64, G = (t.double().reshape(3, 3, K) for t in (X, R, grad_R))
@@ -237,10 +243,10 @@ class _PolarRotation(torch.autograd.Function):
         grad_X = products_3x3(R64, _skew_entry_major(h)).reshape(9, K)
         grad_X = torch.where(torch.isfinite(grad_X), grad_X, torch.zeros_like(grad_X))
         big = torch.finfo(X.dtype).max  # half precision: saturate rather than overflow to inf
-        return grad_X.clamp(-big, big).to(X.dtype), None
+        return grad_X.clamp(-big, big).to(X.dtype), None, None
 
 
-def polar_rotation_entry_major(X: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+def polar_rotation_entry_major(X: Tensor, dtype: torch.dtype | None = None, execution: Execution = COMPILED) -> Tensor:
     """Rotation factors of entry-major matrices, X [9, M] (row 3i + j = entry (i, j)) -> R [9, M], differentiable
     with the closed-form gradient.
 
@@ -248,24 +254,26 @@ def polar_rotation_entry_major(X: Tensor, dtype: torch.dtype | None = None) -> T
     M matrices, where [M, 3, 3] batches run as many tiny 3x3 products."""
     if X.dim() != 2 or X.shape[0] != 9:
         raise ValueError(f"polar_rotation_entry_major: expected [9, M], got shape {tuple(X.shape)}.")
-    return _PolarRotation.apply(X, dtype)
+    return _PolarRotation.apply(X, dtype, execution)
 
 
-def polar_rotation(A: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+def polar_rotation(A: Tensor, dtype: torch.dtype | None = None, execution: Execution = COMPILED) -> Tensor:
     """Rotation factor R of A = R S, [..., 3, 3] -> [..., 3, 3], differentiable with the closed-form gradient.
 
     `dtype`: the forward iteration's dtype (default A's, at least float32); the result has A's dtype."""
     if A.shape[-2:] != (3, 3):
         raise ValueError(f"polar_rotation: expected matrices [..., 3, 3], got shape {tuple(A.shape)}.")
-    return polar_rotation_entry_major(A.reshape(-1, 9).t(), dtype).t().reshape(A.shape)
+    return polar_rotation_entry_major(A.reshape(-1, 9).t(), dtype, execution).t().reshape(A.shape)
 
 
-def polar_decompose(A: Tensor, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
+def polar_decompose(
+    A: Tensor, dtype: torch.dtype | None = None, execution: Execution = COMPILED
+) -> tuple[Tensor, Tensor]:
     """A [..., 3, 3] -> (R, S): R a proper rotation, S = R^T A symmetrised (positive semi-definite when det A >= 0).
 
     For det(A) < 0 (a reflection; not produced by valid blends) R is the closest proper rotation and S has one
     negative eigenvalue.
     """
-    R = polar_rotation(A, dtype)
+    R = polar_rotation(A, dtype, execution)
     S = R.transpose(-1, -2) @ A
     return R, 0.5 * (S + S.transpose(-1, -2))

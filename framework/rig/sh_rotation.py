@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from framework.execution import COMPILED, Execution
 from framework.splat.sh import sh_basis
 
 # Seeded search (numpy/torch Generator 0, best of 3000 random 7-point sets) for the smallest max condition number
@@ -64,7 +65,7 @@ def _sample_dirs_and_pinvs(dtype: torch.dtype, device: torch.device) -> tuple[Te
     return _cache[key]
 
 
-def rotate_sh(sh: Tensor, R: Tensor) -> Tensor:
+def rotate_sh(sh: Tensor, R: Tensor, execution: Execution = COMPILED) -> Tensor:
     """sh [N, K, C] (K = (d+1)^2, d <= 3), R [N, 3, 3] (or [3, 3] shared) -> rotated sh [N, K, C].
 
     The DC term is unchanged; degrees 1..d are rotated so that eval(rotated, d) = eval(sh, R^T d).
@@ -84,7 +85,7 @@ def rotate_sh(sh: Tensor, R: Tensor) -> Tensor:
     out = [shc[:, :1], _degree1_rotation(Rc) @ shc[:, 1:4]]  # [N, 1, C], [N, 3, C]
     if degree >= 2:
         D, pinvs = _sample_dirs_and_pinvs(compute, sh.device)
-        Y = sh_basis(degree, torch.matmul(D, Rc))  # [N, M, K] at R^T d_m (row m of D R)
+        Y = sh_basis(degree, torch.matmul(D, Rc), execution=execution)  # [N, M, K] at R^T d_m (row m of D R)
         M = D.shape[0]
         for l in range(2, degree + 1):
             lo, hi = l * l, (l + 1) ** 2

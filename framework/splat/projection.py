@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import values_on
+from framework.execution import COMPILED, Execution
 from framework.geometry import quat_to_rotmat_entry_major
 from framework.splat.contract import ALPHA_MIN, EPS2D, FAR_PLANE, NEAR_PLANE
 
@@ -47,8 +48,10 @@ def project_gaussians(
     near: float = NEAR_PLANE,
     far: float = FAR_PLANE,
     eps2d: float = EPS2D,
+    execution: Execution = COMPILED,
 ) -> Projection:
-    """Project N Gaussians into C pinhole cameras (see the module docstring for the rules).
+    """Project N Gaussians into C pinhole cameras (see the module docstring for the rules); `execution` picks the
+    rotation helpers' torch form (`framework.geometry.few_kernels`).
 
     Component-major inside: camera-space x, y, z and the rows of T = J W R S are [C, N] and [C, 3, N] tensors (one
     batched product each), so every elementwise step reads contiguous rows, and the per-camera constants come from one
@@ -70,7 +73,8 @@ def project_gaussians(
 
     # T = J W R S with J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]] at x/z, y/z clamped to the widened field of view:
     # T_0 = fx/z (row 0 - u_c row 2 of W R S), T_1 = fy/z (row 1 - v_c row 2)
-    RS = quat_to_rotmat_entry_major(quats.t()).view(3, 3, N) * scales.t().unsqueeze(0)  # [3, 3, N]: (R S)_kj per row
+    R_gauss = quat_to_rotmat_entry_major(quats.t(), execution).view(3, 3, N)  # [3, 3, N]
+    RS = R_gauss * scales.t().unsqueeze(0)  # [3, 3, N]: (R S)_kj per row
     W0, W1, W2 = torch.matmul(R, RS.view(3, 3 * N)).reshape(C, 3, 3, N).unbind(1)  # rows of W R S, [C, 3, N]
     T0 = (W0 - torch.clamp(u, u_lo, u_hi).unsqueeze(1) * W2) * (fx * rz).unsqueeze(1)  # [C, 3, N]
     T1 = (W1 - torch.clamp(v, v_lo, v_hi).unsqueeze(1) * W2) * (fy * rz).unsqueeze(1)

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
+from framework.execution import COMPILED, Execution
 from framework.geometry import few_kernels
 from framework.guards import NORM_EPS
 
@@ -52,7 +53,7 @@ def _check_degree(degree: int) -> None:
         raise ValueError(f"sh_degree: expected an integer in 0..{MAX_SH_DEGREE}, got {degree}; lower the SH degree.")
 
 
-def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS) -> Tensor:
+def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS, execution: Execution = COMPILED) -> Tensor:
     """Basis functions [..., (degree+1)^2] at the normalised directions `dirs` [..., 3].
 
     A zero direction (camera exactly at the mean) gives the basis at (0, 0, 0): only the constant term survives,
@@ -61,7 +62,7 @@ def sh_basis(degree: int, dirs: Tensor, eps: float = NORM_EPS) -> Tensor:
     _check_degree(degree)
     norm = dirs.norm(dim=-1, keepdim=True).clamp_min(eps)
     d = dirs / norm
-    if degree >= 2 and few_kernels(d):  # below degree 2 the entries are fewer operators than the gathers
+    if degree >= 2 and few_kernels(d, execution):  # below degree 2 the entries are fewer operators than the gathers
         return _basis_from_monomials(degree, d)
     x, y, z = d.unbind(-1)
     out = [torch.full_like(x, SH_C0)]
@@ -147,7 +148,7 @@ def _basis_from_monomials(degree: int, d: Tensor) -> Tensor:
     """`sh_basis` at unit directions d [..., 3] as a gather of monomials and a weighted sum. At degree 3 it issues 23
     operators forward and 50 backward (about half of them views), where the entry-by-entry polynomial issues 55 and
     132 (degree 2: 18 and 38 against 25 and 65; degrees 0 and 1 keep the entries, 7 / 0 and 10 / 25 operators): on a
-    GPU each is a launch or at least a dispatch. The CPU keeps the entry form, which its compiled paths
+    GPU each is a launch or at least a dispatch. The CPU keeps the entry form, which its compiled kernels
     mirror. No matrix product, so TF32 cannot touch it. Equal to the entry form up to float rounding
     (tests/test_sh_basis.py)."""
     k, parts = num_sh_bases(degree), [torch.ones_like(d[..., :1]), d]  # [..., 1], [..., 3]
@@ -164,7 +165,7 @@ def _basis_from_monomials(degree: int, d: Tensor) -> Tensor:
     return terms.unflatten(-1, (k, 3)).sum(-1)  # [..., k]
 
 
-def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
+def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor, execution: Execution = COMPILED) -> Tensor:
     """SH value per channel: coeffs [..., K, 3] with K >= (degree+1)^2, dirs [..., 3] -> [..., 3].
 
     Only the first (degree+1)^2 coefficients are used, so a model can raise its active degree during training
@@ -176,7 +177,7 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
             f"sh coefficients: degree {degree} needs at least {k} coefficients along dim -2, found shape "
             f"{tuple(coeffs.shape)}; pass sh_degree <= {int(coeffs.shape[-2] ** 0.5) - 1} or allocate more."
         )
-    basis = sh_basis(degree, dirs)  # [..., k]
+    basis = sh_basis(degree, dirs, execution=execution)  # [..., k]
     return _BasisDot.apply(basis, coeffs[..., :k, :])  # [..., 3]
 
 
@@ -205,7 +206,9 @@ class _BasisDot(torch.autograd.Function):
         return g_basis, g_coeffs
 
 
-def eval_sh_in_frames(degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor) -> Tensor:
+def eval_sh_in_frames(
+    degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor, execution: Execution = COMPILED
+) -> Tensor:
     """SH value of coefficients expressed in per-Gaussian frames: eval_sh(coeffs, frames^T d) [N, 3].
 
     coeffs [N, K, 3], dirs [N, 3], frames [N, 3, 3] (rotations). Equals eval_sh(degree, rotate_sh(coeffs, frames),
@@ -213,15 +216,17 @@ def eval_sh_in_frames(degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor)
     of rotating 15 coefficients per channel.
     """
     local = (dirs.unsqueeze(-2) @ frames).squeeze(-2)  # [N, 3] = (R^T d)^T
-    return eval_sh(degree, coeffs, local)
+    return eval_sh(degree, coeffs, local, execution)
 
 
-def view_colour_dc(degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor) -> Tensor:
+def view_colour_dc(
+    degree: int, coeffs: Tensor, dirs: Tensor, frames: Tensor, execution: Execution = COMPILED
+) -> Tensor:
     """The DC coefficients [N, 1, 3] that render, at sh_degree 0, as the view-dependent colour of `eval_sh_in_frames`.
 
     Why: every backend evaluates SH itself (+0.5, clamp at 0); handing it the colour as a degree-0 coefficient
     keeps the rasterizer contract unchanged, and eval_sh(0, c / SH_C0) = c exactly up to rounding."""
-    return (eval_sh_in_frames(degree, coeffs, dirs, frames) / SH_C0).unsqueeze(-2)
+    return (eval_sh_in_frames(degree, coeffs, dirs, frames, execution) / SH_C0).unsqueeze(-2)
 
 
 def rgb_to_sh0(rgb: Tensor) -> Tensor:

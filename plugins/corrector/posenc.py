@@ -27,4 +27,4 @@ class PosencCorrector(MLPCorrector):
         self.feature_dim = posenc_dim(num_freqs)
 
     def features(self, gaussians: Gaussians) -> Tensor:
-        return posenc(gaussians.means.detach() / self.extent, self.num_freqs)
+        return posenc(gaussians.means.detach() / self.extent, self.num_freqs, self.execution)

@@ -27,7 +27,7 @@ class LBSResidualDeformer(LBSDeformerBase):
 
     Disabled (stage 1) it is plain `lbs` and its parameters are unused. After training, `bake` stores the final
     weights per Gaussian so F_dw is not evaluated at inference. The compiled CPU loops of
-    `framework.rig.compiled_weights` know "additive" and "softmax"; "additive_normalised" runs in torch.
+    `framework.kernels.skin_weights` know "additive" and "softmax"; "additive_normalised" runs in torch.
     """
 
     RESIDUALS = ("additive", "additive_normalised", "softmax")
@@ -80,7 +80,7 @@ class LBSResidualDeformer(LBSDeformerBase):
         if not self.refines:
             return "none", None
         x = normalize_to_bounds(points, self.field.bounds)
-        enc = posenc(x, self.num_freqs).to(points.dtype)  # [..., D]
+        enc = posenc(x, self.num_freqs, self.execution).to(points.dtype)  # [..., D]
         # through the MLP as one [M, D] matrix: on a [N, 7, D] input torch's linear backward copies every activation
         # and gradient once more (1.4x the time of the same MLP on the flat rows, measured at 56k points)
         dw = self.mlp(enc.reshape(-1, enc.shape[-1]))  # [M, J]

@@ -204,7 +204,7 @@ class PaperDensifier(Densifier):
         rest = torch.nonzero(~mask, as_tuple=True)[0]
         means, log_scales, quats = params["means"].detach(), params["log_scales"].detach(), params["quats"].detach()
         scales = log_scales[sel].exp()  # [S, 3]
-        R = quat_to_rotmat(quats[sel])  # [S, 3, 3]
+        R = quat_to_rotmat(quats[sel], self.execution)  # [S, 3, 3]
         noise = torch.randn(k, sel.numel(), 3, device=means.device, dtype=means.dtype)
         offsets = torch.einsum("sij,sj,ksj->ksi", R, scales, noise)  # [k, S, 3]
         new = {}

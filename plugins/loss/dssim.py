@@ -29,9 +29,9 @@ class DSSIMLoss(Loss):
     `foreground_only` (the paper's "only foreground" row) compares the two images with everything outside the human
     mask set to zero in both, so nothing rendered outside the mask changes the loss (SSIM of two zero patches is 1).
 
-    `compiled` (default) computes the SSIM map of CPU images, forward and backward, with the compiled loops of
-    `framework.image.compiled_ssim`; false keeps kornia's filter and torch (the same values to rounding; a benchmark
-    switch).
+    `compiled` (default) computes the SSIM map, forward and backward, with the compiled loops of
+    `framework.kernels.ssim` where the execution compiles the images (CPU float); false keeps kornia's filter and
+    torch (the same values to rounding; a benchmark switch).
     """
 
     FORMS = {"full": 1.0, "half": 0.5}
@@ -56,5 +56,10 @@ class DSSIMLoss(Loss):
             pred, target = pred * keep, target * keep
         # Reflected borders need the half window below the image size: tiny renders get a smaller window.
         window = min(self.window_size, 2 * min(pred.shape[-2:]) - 1)
-        ssim = ssim_map(pred, target, window, compiled=None if self.compiled else False)  # [B, 3, H, W]
+        if self.compiled and self.execution.compiled(pred):
+            from framework.kernels.ssim import ssim_map as compiled_ssim_map  # imports numba: first use only
+
+            ssim = compiled_ssim_map(pred, target, window)  # [B, 3, H, W]
+        else:
+            ssim = ssim_map(pred, target, window)  # [B, 3, H, W]
         return (1.0 - ssim).mean() * self.FORMS[self.form]

@@ -1,20 +1,23 @@
 """`numba`: `torch_ref`'s function on the CPU as compiled loops; the CPU default for training and rendering.
 
+It renders compiled wherever the model's execution (`framework.execution`) compiles its tensors (CPU float32/float64
+under the compiled kernels, the default on a CPU); under the torch execution, or on another device, it is `torch_ref`.
+
 Viewing, evaluation, frame-rate timing and the novel-view and novel-pose frames of a trained avatar render without
 gradients: there projection, SH colours and compositing all run compiled. At the sizes a CPU renders in real time,
-the eager rasterizer's time is mostly per-operation overhead (`framework.splat.compiled_cpu` says why and how the
+the eager rasterizer's time is mostly per-operation overhead (`framework.kernels.rasterize` says why and how the
 loops avoid it). A render whose inputs require gradients (training) runs `torch_ref`'s render with two steps replaced
-by compiled loops with hand-written backward passes: the projection (`framework.splat.compiled_projection`) and the
-compositing (`framework.splat.compiled_composite`). There the rasterizer's SH colours keep torch_ref's autograd code
-(an avatar hands it degree 0: its view colour is compiled with its backward, `framework.splat.compiled_sh`), and
+by compiled loops with hand-written backward passes: the projection (`framework.kernels.projection`) and the
+compositing (`framework.kernels.compositing`). There the rasterizer's SH colours keep torch_ref's autograd code
+(an avatar hands it degree 0: its view colour is compiled with its backward, `framework.kernels.sh_colours`), and
 means2d is still an autograd tensor, so densification's `means2d.grad` is filled as before. Pruning's blending
 weights are `torch_ref`'s. Inputs on another device run `torch_ref` itself; half-precision inputs are rendered in
 float32, as `torch_ref` does, through the same compiled steps.
 
-An avatar that renders with this backend also poses its Gaussians with compiled loops when it needs no gradients
-(`framework.rig.compiled_skinning`, for LBS deformers with baked weights) and evaluates each Gaussian's colour
-towards the camera compiled (`framework.splat.compiled_sh`), so the whole CPU frame but F_a (oneDNN's fused layers)
-and the bone transforms runs compiled.
+Under the same execution an avatar also poses its Gaussians with compiled loops when it needs no gradients
+(`framework.kernels.skinning`, for LBS deformers with baked weights) and evaluates each Gaussian's colour towards the
+camera compiled (`framework.kernels.sh_colours`), so with this backend the whole CPU frame but F_a (oneDNN's fused
+layers) and the bone transforms runs compiled.
 
 The first render on a machine compiles the loops (seconds for the rasterizer, the skinning and the backward passes).
 numba caches them in `__pycache__`, and a later process loads them in about a second, numba's import included.
@@ -26,17 +29,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from framework.execution import Execution
 from framework.interfaces.rasterizer import EPS2D, FAR_PLANE, NEAR_PLANE, Rasterizer, check_render_inputs
 from framework.registry import register
-from framework.runtime import cpu_float
 from framework.splat.projection import Projection
 from framework.types import BlendWeights, Cameras, RenderOutput
 from plugins.rasterizer.torch_ref import TorchRefRasterizer
 
 
 class _CompiledTraining(TorchRefRasterizer):
-    """torch_ref's differentiable render with its projection and compositing compiled on the CPU (float32 and
-    float64); other devices and dtypes keep torch_ref's own steps."""
+    """torch_ref's differentiable render with its projection and compositing compiled where the execution compiles
+    them (CPU float32 and float64); other devices and dtypes keep torch_ref's own steps."""
 
     def project(
         self,
@@ -51,9 +54,9 @@ class _CompiledTraining(TorchRefRasterizer):
         near: float,
         far: float,
     ) -> Projection:
-        if not cpu_float(means) or K.requires_grad or world_to_cam.requires_grad:
+        if not self.execution.compiled(means) or K.requires_grad or world_to_cam.requires_grad:
             return super().project(means, quats, scales, opacities, K, world_to_cam, width, height, near, far)
-        from framework.splat.compiled_projection import project_compiled  # lazy: numba's import (module docstring)
+        from framework.kernels.projection import project_compiled  # lazy: numba's import (module docstring)
 
         return project_compiled(means, quats, scales, opacities, K, world_to_cam, width, height, near, far)
 
@@ -70,11 +73,11 @@ class _CompiledTraining(TorchRefRasterizer):
         width: int,
         height: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        if not cpu_float(means2d):
+        if not self.execution.compiled(means2d):
             return super().composite_entries(
                 means2d, conics, opacities, colors, depths, cam, half, num_cameras, width, height
             )
-        from framework.splat.compiled_composite import CompiledComposite  # lazy: numba's import (module docstring)
+        from framework.kernels.compositing import CompiledComposite  # lazy: numba's import (module docstring)
 
         return CompiledComposite.apply(
             means2d, conics, opacities, colors, depths, half.detach(), cam, num_cameras, width, height
@@ -94,26 +97,19 @@ class NumbaRasterizer(Rasterizer):
     """torch_ref's contract; forward-only renders compiled whole, gradient renders with compiled projection and
     compositing (their backward passes compiled too)."""
 
-    #: An avatar rendering with this backend skins baked weights compiled too (`framework.rig.compiled_skinning`),
-    #: and takes its view colour from compiled loops (`framework.splat.compiled_sh`, in training with their backward)
-    compiled_inference = True
-
     def __init__(self) -> None:
         self._reference = _CompiledTraining()
 
-    @staticmethod
-    def compiled(tensors: tuple[Tensor, ...]) -> bool:
-        """Whether a render of these tensors runs the compiled loops: CPU, float32 or float64, no gradient asked."""
-        first = tensors[0]
-        if not cpu_float(first):
+    def set_execution(self, execution: Execution) -> None:
+        super().set_execution(execution)
+        self._reference.set_execution(execution)
+
+    def _renders_compiled(self, tensors: tuple[Tensor, ...]) -> bool:
+        """Whether a render of these tensors runs the compiled loops whole: the execution compiles the first (CPU,
+        float32 or float64), no gradient asked."""
+        if not self.execution.compiled(tensors[0]):
             return False
         return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
-
-    @staticmethod
-    def compiled_with_gradients(tensors: tuple[Tensor, ...]) -> bool:
-        """Whether a training render of these tensors runs its projection and compositing compiled: CPU, float32 or
-        float64 (an avatar then takes its view colour's compiled loops and their backward too)."""
-        return cpu_float(tensors[0])
 
     def render(
         self,
@@ -130,7 +126,7 @@ class NumbaRasterizer(Rasterizer):
         far: float = FAR_PLANE,
     ) -> RenderOutput:
         check_render_inputs(means, quats, scales, opacities, sh, sh_degree)
-        if not self.compiled((means, quats, scales, opacities, sh)) or cameras.device.type != "cpu":
+        if not self._renders_compiled((means, quats, scales, opacities, sh)) or cameras.device.type != "cpu":
             return self._reference.render(
                 means,
                 quats,
@@ -144,9 +140,9 @@ class NumbaRasterizer(Rasterizer):
                 far=far,
             )
         # here, not at module level: plugin discovery imports every backend, and numba's import costs about 0.5 s
-        from framework.splat import compiled_cpu
-        from framework.splat.compiled_cpu import float64_array as _np64
-        from framework.splat.compiled_sh import sh_colours_compiled
+        from framework.kernels import rasterize
+        from framework.kernels.rasterize import float64_array as _np64
+        from framework.kernels.sh_colours import sh_colours_compiled
 
         C, N, H, W = cameras.num, means.shape[0], cameras.height, cameras.width
         dtype = means.dtype
@@ -157,7 +153,7 @@ class NumbaRasterizer(Rasterizer):
         radii = np.empty((C, N), dtype=np.int32)  # [C, N]
         valid = np.empty((C, N), dtype=np.bool_)  # [C, N]
         opacity = _np64(opacities)  # [N]
-        compiled_cpu.project(
+        rasterize.project(
             _np64(means),
             _np64(quats),
             _np64(scales),
@@ -187,7 +183,7 @@ class NumbaRasterizer(Rasterizer):
         for c in range(C):
             visible = np.flatnonzero(valid[c])
             order = visible[np.argsort(depths[c, visible], kind="stable")]  # nearest first, ties in Gaussian order
-            compiled_cpu.composite(
+            rasterize.composite(
                 order,
                 means2d[c],
                 conics[c],

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from framework.device_constants import constant_on
+from framework.execution import COMPILED, Execution
 from framework.interfaces.rasterizer import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -282,9 +283,9 @@ def composite(
     return _Composite.apply(mx, my, ca, cb, cc, opacities, colors, depths, ent, pix, num_pixels, width)
 
 
-def sh_colors(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
+def sh_colors(degree: int, coeffs: Tensor, dirs: Tensor, execution: Execution = COMPILED) -> Tensor:
     """Colour = SH + 0.5, clamped at 0 from below: coeffs [M, K, 3], dirs [M, 3] (mean - camera centre)."""
-    return (eval_sh(degree, coeffs, dirs) + 0.5).clamp_min(0.0)
+    return (eval_sh(degree, coeffs, dirs, execution) + 0.5).clamp_min(0.0)
 
 
 @register("rasterizer", "torch_ref")
@@ -350,11 +351,11 @@ class TorchRefRasterizer(Rasterizer):
         if 2 * flat.numel() >= C * means.shape[0]:
             # most (camera, Gaussian) entries are visible: evaluate the SH of every one and gather [M, 3] colours,
             # rather than gathering [M, K, 3] coefficients (and scattering their gradient back)
-            colors = sh_colors(sh_degree, sh, means[None] - centers[:, None]).reshape(-1, 3).index_select(0, flat)
+            dirs = means[None] - centers[:, None]  # [C, N, 3]
+            colors = sh_colors(sh_degree, sh, dirs, self.execution).reshape(-1, 3).index_select(0, flat)
         else:
-            colors = sh_colors(
-                sh_degree, sh.index_select(0, gid), means.index_select(0, gid) - centers.index_select(0, cam)
-            )
+            dirs = means.index_select(0, gid) - centers.index_select(0, cam)  # [M, 3]
+            colors = sh_colors(sh_degree, sh.index_select(0, gid), dirs, self.execution)
         rgb, T_final, depth = self.composite_entries(
             means2d.reshape(-1, 2).index_select(0, flat),
             proj.conics.reshape(-1, 3).index_select(0, flat),
@@ -390,7 +391,19 @@ class TorchRefRasterizer(Rasterizer):
         far: float,
     ) -> Projection:
         """The EWA projection (`framework.splat.projection`), differentiable; a subclass may replace it (`numba`)."""
-        return project_gaussians(means, quats, scales, opacities, K, world_to_cam, width, height, near=near, far=far)
+        return project_gaussians(
+            means,
+            quats,
+            scales,
+            opacities,
+            K,
+            world_to_cam,
+            width,
+            height,
+            near=near,
+            far=far,
+            execution=self.execution,
+        )
 
     def composite_entries(
         self,
@@ -440,6 +453,7 @@ class TorchRefRasterizer(Rasterizer):
             H,
             near=near,
             far=far,
+            execution=self.execution,
         )
         flat, cam, gid = depth_ordered_entries(proj.valid, proj.depths)  # [M] each
         if flat.numel() == 0:

@@ -3,7 +3,7 @@
 Why: a GPU step or frame costs the host time to issue each operator (a kernel launch or at least a dispatch), and
 every operator whose result the host needs (`.item()`, a boolean index, `nonzero`, a tensor made from Python values,
 a copy from host memory without `non_blocking`) waits until the device has run everything queued. Both can be
-counted on any machine by running the GPU's code path on a CPU (`framework.runtime.use_compiled_paths(False)`):
+counted on any machine by running the GPU's code path on a CPU (the torch execution, `framework.execution.TORCH`):
 `tools/count_syncs.py` counts a training step, `tools/bench_render.py` a novel-pose frame, with the rules here.
 
 Not every operator queues device work: about a third of a training step's are views (`view`, `select`,

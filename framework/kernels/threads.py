@@ -1,8 +1,8 @@
 """Run a compiled loop over rows (Gaussians, image planes) on every CPU thread torch may use: the rows split into
 contiguous chunks, all but the last on a small thread pool, the last on the calling thread.
 
-Why threads and not processes: the loops (`framework.rig.compiled_weights`, `framework.rig.compiled_skinning`,
-`framework.image.compiled_ssim`) are numba functions compiled with `nogil=True`, so two threads run them on two cores
+Why threads and not processes: the loops (`framework.kernels.skin_weights`, `framework.kernels.skinning`,
+`framework.kernels.ssim`) are numba functions compiled with `nogil=True`, so two threads run them on two cores
 with no copies. The pool is created on first use and forgotten in a forked child (a data-loader worker inherits the
 pool object but not its threads, and would wait on them forever).
 """

@@ -2,7 +2,7 @@
 
 Why: `framework.splat.projection.project_gaussians` is about 300 small tensor operations forward and as many
 backward, each a few microseconds of overhead however few Gaussians there are. The compiled forward
-(`framework.splat.compiled_cpu.project`) and its hand-written backward (`project_backward`, which recomputes each
+(`framework.kernels.rasterize.project`) and its hand-written backward (`project_backward`, which recomputes each
 entry's forward and applies the chain rule in reverse) do the same arithmetic per entry in float64 without that
 overhead. The rules (culling, the field-of-view clamp, the dilation, the screen box) are the projection's, and
 `tests/test_numba_rasterizer.py` checks the gradients against autograd through `project_gaussians` in float64.
@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from framework.splat import compiled_cpu
-from framework.splat.compiled_cpu import float64_array
+from framework.kernels import rasterize
+from framework.kernels.rasterize import float64_array
 from framework.splat.contract import EPS2D
 from framework.splat.projection import Projection
 
@@ -46,7 +46,7 @@ class _CompiledProjection(torch.autograd.Function):
         half, cov2d = np.empty((C, N, 2)), np.empty((C, N, 3))
         radii, valid = np.empty((C, N), dtype=np.int32), np.empty((C, N), dtype=np.bool_)
         m, q, s, k, w2c = inputs
-        compiled_cpu.project(
+        rasterize.project(
             m,
             q,
             s,
@@ -84,7 +84,7 @@ class _CompiledProjection(torch.autograd.Function):
             return np.zeros(shape) if g is None else float64_array(g)
 
         grads = (np.zeros((N, 3)), np.zeros((N, 4)), np.zeros((N, 3)))
-        compiled_cpu.project_backward(
+        rasterize.project_backward(
             m,
             q,
             s,

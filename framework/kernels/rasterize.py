@@ -9,7 +9,7 @@ footprint covers. That is front-to-back compositing pixel by pixel, as the contr
 defines it, because a pixel sees its entries in the same order either way.
 
 Training renders use the same loops with hand-written backward passes (`project_backward`, `accumulate_backward`;
-the autograd Functions are `framework.splat.compiled_projection` and `framework.splat.compiled_composite`).
+the autograd Functions are `framework.kernels.projection` and `framework.kernels.compositing`).
 Everything is computed in float64 and the results are cast to the caller's dtype.
 A float32 render therefore differs from `torch_ref`'s float32 render by float32 rounding, and both differ from a float64
 render by about the same amount; `tests/test_numba_rasterizer.py` checks that against `torch_ref` in float64. The pairs

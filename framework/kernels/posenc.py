@@ -23,8 +23,6 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from framework.runtime import cpu_float
-
 
 @njit(cache=True, nogil=True)
 def encode(x, sin0, cos0, num_freqs, out) -> None:
@@ -83,13 +81,8 @@ class _PosEnc(torch.autograd.Function):
         return grad_x.to(ctx.dtype), None
 
 
-def applies(x: Tensor) -> bool:
-    """Whether `posenc_compiled` takes x: a CPU float32 or float64 tensor (other devices keep torch's path)."""
-    return cpu_float(x)
-
-
 def posenc_compiled(x: Tensor, num_freqs: int) -> Tensor:
-    """`posenc(x, num_freqs)` for x [..., D] on the CPU (`applies`), differentiable in x."""
+    """`posenc(x, num_freqs)` for CPU float32/float64 x [..., D], differentiable in x."""
     if x.dim() == 2:
         return _PosEnc.apply(x, num_freqs)
     lead, D = x.shape[:-1], x.shape[-1]

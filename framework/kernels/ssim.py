@@ -1,6 +1,6 @@
 """`framework.image.ssim.ssim_map` as compiled loops (numba) with a hand-written backward, for CPU training steps.
 
-Why: after its filter was compiled (`framework.image.compiled_filter`), the D-SSIM term of a CPU step was still
+Why: after its filter was compiled (`framework.kernels.separable_filter`), the D-SSIM term of a CPU step was still
 about seventy torch operations over [1, 3, H, W] maps: the five moments, the
 means' and variances' combination, and their gradients, each a pass of its own with its dispatch. Per pixel that is
 a few dozen flops. Here each image plane's moments, filter, map and, backward, the map's gradient to the five filtered
@@ -20,17 +20,12 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from framework.compiled_threads import run_chunked
-from framework.image.compiled_filter import filter_planes
-from framework.runtime import cpu_float
+from framework.image.ssim import gaussian_window, ssim_constants
+from framework.kernels.separable_filter import filter_planes
+from framework.kernels.threads import run_chunked
 
 #: pixels (over an image plane's five moments) below which a chunk of planes is not worth a second thread
 MIN_PIXELS_PER_CHUNK = 32768
-
-
-def applies(x: Tensor) -> bool:
-    """Whether the compiled loops take x: a CPU float32 or float64 tensor (other devices keep kornia's)."""
-    return cpu_float(x)
 
 
 @njit(cache=True, nogil=True)
@@ -132,10 +127,16 @@ class _CompiledSSIM(torch.autograd.Function):
 
 
 def ssim_map_compiled(img1: Tensor, img2: Tensor, kernel: Tensor, c1: float, c2: float, eps: float) -> Tensor:
-    """SSIM map [B, C, H, W] of CPU float images [B, C, H, W] (`applies`) with the 1-D window kernel
+    """SSIM map [B, C, H, W] of CPU float32/float64 images [B, C, H, W] with the 1-D window kernel
     [1, K] along both axes; K odd, K // 2 below both sides (as the filter requires)."""
     taps = kernel.detach().reshape(-1).to(device="cpu", dtype=img1.dtype).numpy()
     K, (H, W) = taps.shape[0], img1.shape[-2:]
     if K % 2 == 0 or K // 2 >= min(H, W):
         raise ValueError(f"ssim_map_compiled: a {K}-tap window on {H} x {W} images; it needs K odd and K // 2 < H, W.")
     return _CompiledSSIM.apply(img1, img2, taps, float(c1), float(c2), float(eps))
+
+
+def ssim_map(img1: Tensor, img2: Tensor, window_size: int, max_val: float = 1.0, eps: float = 1e-12) -> Tensor:
+    """`framework.image.ssim.ssim_map` (same signature, window and constants) of CPU float32/float64 images."""
+    c1, c2 = ssim_constants(max_val)
+    return ssim_map_compiled(img1, img2, gaussian_window(window_size, img1.dtype, img1.device), c1, c2, eps)

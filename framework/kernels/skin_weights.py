@@ -32,8 +32,8 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from framework.compiled_threads import run_chunked
 from framework.guards import WEIGHT_FIELD_NAN_NODE, WEIGHT_VAR_MIN
+from framework.kernels.threads import run_chunked
 from framework.rig.weight_field import WeightField
 
 #: F_dw's combination with the grid weights: none (F_dw off), softmax, additive (`LBSResidualDeformer.residual`)

@@ -41,8 +41,8 @@ import numpy as np
 import torch
 from numba import njit
 
-from framework.compiled_threads import run_chunked
 from framework.guards import LBS_MIN_STRETCH, NORM_EPS, POLAR_DAMPING_FLOOR, POLAR_SINGULAR_TOL, POLAR_TIKHONOV
+from framework.kernels.threads import run_chunked
 
 _NEWTON_MAX_ITERS = 30
 _NEWTON_TOL = 1e-13  # float64, as framework.rig.polar
@@ -571,7 +571,7 @@ class _SkinAffine(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, A9, t3, means, quats, log_scales, blended: bool, diag: bool):  # type: ignore[override]
-        from framework.splat.compiled_cpu import float64_array as f64
+        from framework.kernels.rasterize import float64_array as f64
 
         N, dtype = means.shape[0], means.dtype
         a9, m64, q64 = f64(A9), f64(means), f64(quats)
@@ -584,7 +584,7 @@ class _SkinAffine(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_means, g_quats, g_log_scales, g_rotations):  # type: ignore[override]
-        from framework.splat.compiled_cpu import float64_array as f64
+        from framework.kernels.rasterize import float64_array as f64
 
         a9, m64, q64, r64 = ctx.arrays
         N, dtype = m64.shape[0], ctx.dtype
@@ -628,8 +628,8 @@ def lbs_with_sh_frames_compiled(gaussians, weights, transforms, stretch: str = "
 
     The blend is one float64 matrix product when every bone transform is finite (faster than the loop), and
     `blend_skipping_zeros` otherwise (module docstring)."""
+    from framework.kernels.rasterize import float64_array as f64
     from framework.rig.lbs import blended_affine
-    from framework.splat.compiled_cpu import float64_array as f64
 
     N, dtype = gaussians.means.shape[0], gaussians.means.dtype
     if bool(torch.isfinite(transforms).all()):

@@ -2,13 +2,13 @@
 
 Why: `torch_ref`'s compositor lists every (entry, pixel) pair, sorts them by pixel and runs a dozen passes over the
 pair arrays forward and as many backward, each a separate tensor operation with its own memory traffic. The compiled
-loops of `framework.splat.compiled_cpu` visit the pairs once forward (`accumulate`, which skips finished pixels and
+loops of `framework.kernels.rasterize` visit the pairs once forward (`accumulate`, which skips finished pixels and
 logs the pairs it added: slot, position, alpha) and replay that log backwards (`accumulate_backward`), so the
 backward touches only the pairs that contributed, and per pixel walks its transmittance back from the final one.
 Everything runs in float64 inside, so float32 renders and gradients are at least as accurate as `torch_ref`'s float32
 ones. A whole training render, forward and backward, takes under half of torch_ref's time (docs/results/speed.md).
 
-The colours stay in PyTorch and the projection has its own Function (`framework.splat.compiled_projection`); autograd
+The colours stay in PyTorch and the projection has its own Function (`framework.kernels.projection`); autograd
 carries the gradients between them, and densification reads `means2d.grad` as before.
 """
 
@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from framework.splat import compiled_cpu
-from framework.splat.compiled_cpu import float64_array
+from framework.kernels import rasterize
+from framework.kernels.rasterize import float64_array
 
 _capacity_hint = [0]  # room for the pair log: the last render's count, plus a quarter
 
@@ -61,7 +61,7 @@ class CompiledComposite(torch.autograd.Function):
             T = np.ones(slots)
             acc = np.zeros((slots, 4))  # [slots, 4] sums of T * alpha * (r, g, b, z)
             log = (np.empty(capacity, dtype=np.int32), np.empty(capacity, dtype=np.int32), np.empty(capacity))
-            count = compiled_cpu.accumulate(order, base_row, *entries, width, height, T, acc, *log)
+            count = rasterize.accumulate(order, base_row, *entries, width, height, T, acc, *log)
             if count <= capacity or capacity == 0:
                 break
             capacity = count + count // 4  # rare: the first render, or a jump in the number of pairs
@@ -75,7 +75,7 @@ class CompiledComposite(torch.autograd.Function):
         pixels = num_cameras * height * width
         out_dtype = np.float32 if dtype == torch.float32 else np.float64  # sums in float64, stored as the caller's
         rgb, trans, depth = np.empty((pixels, 3), out_dtype), np.empty(pixels, out_dtype), np.empty(pixels, out_dtype)
-        compiled_cpu.slots_to_pixels(acc, T, width, np.zeros(3), rgb, trans, depth, False)  # background added later
+        rasterize.slots_to_pixels(acc, T, width, np.zeros(3), rgb, trans, depth, False)  # background added later
         return tuple(torch.from_numpy(a).to(dtype) for a in (rgb, trans, depth))
 
     @staticmethod
@@ -91,11 +91,11 @@ class CompiledComposite(torch.autograd.Function):
 
         T = ctx.T.copy()  # walked back to 1 by the backward
         g_acc, tail = np.empty((T.shape[0], 4)), np.empty(T.shape[0])  # [slots, 4], [slots]: T_final * dL/dT_final
-        compiled_cpu.pixels_to_slots(
+        rasterize.pixels_to_slots(
             pixels(g_rgb, 3), pixels(g_T, 1)[:, 0], pixels(g_depth, 1)[:, 0], T, width, g_acc, tail
         )
         grads = (np.zeros((M, 2)), np.zeros((M, 3)), np.zeros(M), np.zeros((M, 3)), np.zeros(M))
-        compiled_cpu.accumulate_backward(
+        rasterize.accumulate_backward(
             ctx.order, ctx.base_row, means2d, conics, opacities, colors, depths, width, T, *ctx.log, g_acc, tail, *grads
         )
         out = tuple(torch.from_numpy(g).to(like.dtype) for g in grads)

@@ -1,5 +1,5 @@
 """SSIM's separable Gaussian filter with reflected borders as a compiled loop (numba), and its adjoint: the filter
-of `framework.image.compiled_ssim`.
+of `framework.kernels.ssim`.
 
 Why: the D-SSIM term filters five moment maps of the render (`framework.image.ssim.ssim_map`) with an 11-tap window
 along each axis. Through `kornia.filters.filter2d_separable` that is a reflection pad and a depthwise convolution per
