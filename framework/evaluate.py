@@ -173,9 +173,27 @@ def evaluate_from_config(cfg) -> Path:
     dm = datamodule_for(module, data_overrides(cfg))
     splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
     metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
+    record_as = cfg.get("record_as")
+    run_dir = Path(str(cfg.ckpt)).resolve().parent.parent  # <run>/checkpoints/<file>
+    if record_as:
+        if len(splits) != 1:
+            raise SplatrigError(f"record_as={record_as}: records one split (splits=[novel_pose]), got {splits}")
+        if not (run_dir / "results.json").is_file():
+            raise SplatrigError(
+                f"record_as={record_as}: {run_dir} has no results.json to record into; record_as takes a training "
+                f"run's checkpoint (<run>/checkpoints/final.ckpt)"
+            )
     out = Path(cfg.out_dir) if cfg.out_dir else beside_checkpoint(cfg.ckpt, "eval")
-    evaluate_module(module, dm, splits, metrics, out)
+    summary = evaluate_module(module, dm, splits, metrics, out)
     print(f"[splatrig] evaluation written to {out}")
+    if record_as:
+        from framework.evaluation.run_record import metrics_from_summary, record_metrics
+
+        measured = metrics_from_summary(summary).get(splits[0])
+        if not measured:
+            raise SplatrigError(f"record_as={record_as}: split {splits[0]} measured nothing; nothing recorded")
+        path = record_metrics(run_dir, str(record_as), measured)
+        print(f"[splatrig] recorded as metrics.{record_as} in {path}")
     return out
 
 

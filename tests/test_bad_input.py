@@ -146,6 +146,18 @@ CASES = [
         ["ckpt={foreign}"],
     ),
     Case("evaluate_unknown_metric", "evaluate", "`metrics=[psnrr]`", ["ckpt={ckpt}", "metrics=[psnrr]"]),
+    Case(
+        "evaluate_record_two_splits",
+        "evaluate",
+        "`record_as=novel_pose_true_poses splits=[novel_view,novel_pose]`",
+        ["ckpt={ckpt}", "record_as=novel_pose_true_poses", "splits=[novel_view,novel_pose]"],
+    ),
+    Case(
+        "evaluate_record_no_run",
+        "evaluate",
+        "`record_as=` with a checkpoint outside a training run",
+        ["ckpt={loose_ckpt}", "record_as=novel_pose_true_poses", "splits=[novel_pose]"],
+    ),
     Case("render_no_ckpt", "render", "no `ckpt=`", []),
     Case(
         "render_motion_joints",
@@ -319,6 +331,10 @@ def world(tmp_path_factory: pytest.TempPathFactory):
         data = paths["ckpt"].read_bytes()
         (root / "truncated.ckpt").write_bytes(data[: len(data) // 2])
         (root / "garbage.ckpt").write_text("not a checkpoint\n")
+        (root / "loose").mkdir()
+        (root / "loose" / "checkpoints").mkdir()
+        paths["loose_ckpt"] = root / "loose" / "checkpoints" / "last.ckpt"  # a copy with no run record beside it
+        paths["loose_ckpt"].write_bytes(data)
         torch.save({"weights": torch.zeros(3)}, root / "foreign.ckpt")
         np.savez(root / "motion_joints.npz", poses=np.zeros((3, 5, 3), np.float32))
         poses = np.zeros((3, 17, 3), np.float32)

@@ -117,6 +117,30 @@ def test_paper_ssim_and_lpips_deltas_where_the_paper_gives_them(tmp_path):
     assert cells[("image", "novel_view", "psnr")].paper_delta == pytest.approx(24.22 - 33.32)
 
 
+def test_a_split_recorded_later_is_judged_against_the_papers_split(parts):
+    """`evaluate ... record_as=novel_pose_true_poses` adds a split to a run's record; the table shows it for every row
+    and judges it against the paper's novel-pose Δ (w/o F_a: -3.42 dB)."""
+    from framework.evaluation.run_record import record_metrics
+
+    truth = {"paper_full": [31.0, 31.1, 30.9], "no_corrector": [30.0, 30.1, 29.9]}  # -1.0 dB: agrees
+    for part, seeds in zip(parts, ([0, 1], [2]), strict=True):
+        for experiment, values in truth.items():
+            for s in seeds:
+                run = part / f"+experiment={experiment},seed={s}"
+                record_metrics(run, "novel_pose_true_poses", {"image": {"psnr": values[s]}})
+                assert (
+                    load_run_record(run / "results.json")["metrics"]["novel_pose"]["image"]["psnr"]
+                    == PSNR[experiment][1][s]
+                )  # the training's own splits are kept
+    table = build_table(find_runs(parts))
+    assert [name for name, _ in table.splits] == ["novel_view", "novel_pose", "novel_pose_true_poses"]
+    cell = {r.experiment: r for r in table.rows}["no_corrector"].cells[("image", "novel_pose_true_poses", "psnr")]
+    assert cell.diff.delta == pytest.approx(-1.0) and cell.paper_delta == pytest.approx(29.99 - 33.41)
+    assert cell.verdict == "agrees"
+    missing = {r.experiment: r for r in table.rows}["no_alpha_loss"].cells[("image", "novel_pose_true_poses", "psnr")]
+    assert missing.value.n == 0 and missing.verdict is None  # a row nobody re-evaluated has no cell
+
+
 def test_runs_from_two_parts_give_the_known_table(parts, tmp_path):
     runs = find_runs(parts)
     assert len(runs) == 15 and runs[0].variant == tuple(sorted(["+experiment=all_sh_correction", *SHARED]))

@@ -86,6 +86,18 @@ def write_run_record(run_dir: Path, **fields: Any) -> Path:
     return atomic_write_text(Path(run_dir) / FILENAME, json.dumps(record, indent=1) + "\n")
 
 
+def record_metrics(run_dir: Path, name: str, metrics: dict[str, dict[str, float]]) -> Path:
+    """Store one more evaluation in a run's results.json as `metrics[name]` ({region: {metric: value}}), e.g. the
+    held-out motion evaluated under another protocol after training; the rest of the record is kept."""
+    path = Path(run_dir) / FILENAME
+    record = load_run_record(path)
+    record.setdefault("metrics", {})[name] = metrics
+    record.setdefault("recorded_later", [])
+    if name not in record["recorded_later"]:
+        record["recorded_later"].append(name)
+    return atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+
+
 def load_run_record(path: Path) -> dict[str, Any]:
     """Read and check one results.json."""
     path = Path(path)

@@ -25,6 +25,10 @@ from framework.reporting.stats import Difference, Spread, difference, spread, ve
 
 REFERENCE = "paper_full"
 SPLITS = (("novel_view", "novel view"), ("novel_pose", "novel pose"))
+#: Splits a run may record after training (`framework.evaluate ... record_as=<name>`), shown when any run has them:
+#: name -> (label, the paper's split whose Δ they are judged against). The studio's true poses remove the pose-fit
+#: noise of its stored poses from the held-out motion, so a row is judged on the model rather than on that noise.
+LATER_SPLITS = {"novel_pose_true_poses": ("novel pose, true poses", "novel_pose")}
 REGIONS = (("image", "whole image"), ("body_box", "body box"))
 #: (metric key in results.json, column label, decimals)
 METRICS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 4), ("lpips_alex", "LPIPS", 4))
@@ -68,6 +72,7 @@ PAPER_SSIM_LPIPS: dict[tuple[str, str, str], float] = {
 
 def paper_delta(experiment: str, split: str, metric: str) -> float | None:
     """The paper's row minus its complete model, where the paper's table (as held here) gives both."""
+    split = LATER_SPLITS[split][1] if split in LATER_SPLITS else split
     if metric == "psnr":
         row = PAPER.get(experiment)
         return None if row is None else round(row.psnr[split] - PAPER[REFERENCE].psnr[split], 2)
@@ -98,6 +103,7 @@ class Table4:
     rows: list[Row]
     shared: tuple[str, ...]  # overrides every run shares
     runs: list[Run]
+    splits: tuple[tuple[str, str], ...] = SPLITS  # (split, label): SPLITS and the later splits some run recorded
 
 
 def _label(experiment: str, extras: tuple[str, ...]) -> str:
@@ -134,6 +140,9 @@ def build_table(runs: list[Run]) -> Table4:
     def cell_values(members: list[Run], region: str, split: str, metric: str) -> Spread:
         return spread(r.metric(split, region, metric) for r in members)
 
+    recorded = {name for r in runs for name in r.record["metrics"]}
+    later = [(name, label) for name, (label, _) in LATER_SPLITS.items() if name in recorded]
+    splits = (*SPLITS, *later)
     rows = []
     order = {row.experiment: i for i, row in enumerate(PAPER_TABLE4)}
     for v in sorted(variants, key=lambda v: (bool(extras(v)), order.get(groups[v][0].experiment, 99), own[v])):
@@ -143,7 +152,7 @@ def build_table(runs: list[Run]) -> Table4:
         is_ref = v == references[0]
         cells = {}
         for region, _ in REGIONS:
-            for split, _ in SPLITS:
+            for split, _ in splits:
                 for metric, _, _ in METRICS:
                     value = cell_values(members, region, split, metric)
                     if is_ref:
@@ -156,7 +165,7 @@ def build_table(runs: list[Run]) -> Table4:
         rows.append(
             Row(own[v], experiment, _label(experiment, extras(v)), paper, tuple(sorted(r.seed for r in members)), cells)
         )
-    return Table4(rows, shared, runs)
+    return Table4(rows, shared, runs, splits)
 
 
 # ----------------------------------------------------------------------------------------------------- text
@@ -179,13 +188,13 @@ def cell_text(cell: Cell, decimals: int) -> str:
 
 def region_markdown(table: Table4, region: str) -> str:
     header = ["row", "seeds"]
-    header += [f"{s_label} {m_label}" for _, s_label in SPLITS for _, m_label, _ in METRICS]
-    header += [f"verdict {s_label}" for _, s_label in SPLITS]
+    header += [f"{s_label} {m_label}" for _, s_label in table.splits for _, m_label, _ in METRICS]
+    header += [f"verdict {s_label}" for _, s_label in table.splits]
     lines = []
     for row in table.rows:
         cells = [row.label, ",".join(map(str, row.seeds))]
-        cells += [cell_text(row.cells[(region, s, m)], d) for s, _ in SPLITS for m, _, d in METRICS]
-        cells += [row.cells[(region, s, "psnr")].verdict or "" for s, _ in SPLITS]
+        cells += [cell_text(row.cells[(region, s, m)], d) for s, _ in table.splits for m, _, d in METRICS]
+        cells += [row.cells[(region, s, "psnr")].verdict or "" for s, _ in table.splits]
         lines.append(tuple(cells))
     return format_table(lines, tuple(header))
 
@@ -265,9 +274,9 @@ def figure(table: Table4):
     import matplotlib.pyplot as plt
 
     rows = [r for r in table.rows if any(c.diff is not None for c in r.cells.values())]
-    fig, axes = plt.subplots(1, len(SPLITS), figsize=(max(11.0, 1.1 * len(rows) + 5), 5.5), sharey=True)
+    fig, axes = plt.subplots(1, len(table.splits), figsize=(max(11.0, 1.1 * len(rows) + 5), 5.5), sharey=True)
     width = 0.27
-    for ax, (split, s_label) in zip(axes, SPLITS, strict=True):
+    for ax, (split, s_label) in zip(axes, table.splits, strict=True):
         xs = range(len(rows))
         for k, (region, r_label) in enumerate(REGIONS):
             cells = [r.cells[(region, split, "psnr")] for r in rows]
