@@ -1,6 +1,7 @@
 """The Hydra entry points' command line: an override Hydra cannot compose (an unknown option of a config group, an
 unknown experiment, an unknown key) ends in one `error: ...` line with a did-you-mean and exit status 2, like
-splatrig's own errors (framework.errors), instead of Hydra's report and exit status 1.
+splatrig's own errors (framework.errors), instead of Hydra's report and exit status 1. A dataset key renamed by the
+naming rule (framework.dataset_keys) names its new name.
 
 `@hydra_main("train")` stands for `@hydra.main(version_base="1.3", config_path="pkg://framework.conf",
 config_name="train")`. Hydra reports its errors itself (`run_and_report`: message, `sys.exit(1)`) unless
@@ -34,6 +35,8 @@ def composition_message(exc: BaseException) -> str:
     from hydra.errors import MissingConfigException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
+    from framework.dataset_keys import old_key_hint
+
     if isinstance(exc, MissingConfigException) and exc.options and exc.missing_cfg_file:
         group, _, name = str(exc.missing_cfg_file).rpartition("/")
         options = sorted(exc.options)
@@ -46,6 +49,9 @@ def composition_message(exc: BaseException) -> str:
         prefix, _, leaf = key.rpartition(".")
         dotted = f"{prefix}." if prefix else ""
         names = [str(k) for k in parent.keys()]
+        renamed = old_key_hint(leaf, names, dotted) if prefix == "data" else None  # data.views -> data.num_views
+        if renamed is not None:
+            return f"{key}: no such key; {renamed}"
         close = difflib.get_close_matches(leaf, names, n=1, cutoff=0.6)
         if close:
             return f"{key}: no such key; did you mean {dotted}{close[0]}?"

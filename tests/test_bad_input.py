@@ -211,6 +211,14 @@ COMMAND_LINE_CASES = [
     Case(
         "key_unknown", "train", "`trainer.max_step=100`", ["trainer.max_step=100"], "; did you mean trainer.max_steps?"
     ),
+    # the studio's counts follow the dataset-key rule (framework.dataset_keys): the old name says the new one
+    Case(
+        "key_renamed",
+        "train",
+        "`data=synthetic_studio data.views=4`",
+        ["data=synthetic_studio", "data.views=4"],
+        "; it is now data.num_views",
+    ),
     # `motion=`, as in render and view, is a key of export's config (it used to be unknown)
     Case(
         "key_unknown_export",

@@ -9,6 +9,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
+from framework.build import SPLIT_OVERRIDES
 from framework.plugins import load_plugins
 from framework.registry import REGISTRIES
 
@@ -56,6 +57,19 @@ def _compose(overrides: list[str]):
     return job
 
 
+def _check_keys(cls: type, node: dict, name: str) -> None:
+    """The keys bind to the constructor; those its `**kwargs` takes are fields of the class's `config_schemas` (a
+    sequence dataset's keys beyond its layout's: SequenceOptions, and the studio's StudioSettings)."""
+    from framework.data.sequence_dataset import SequenceDataset
+    from framework.dataset_keys import split_config
+
+    node = {k: v for k, v in node.items() if k != SPLIT_OVERRIDES}
+    bound = inspect.signature(cls).bind_partial(**node)
+    rest = [p.name for p in inspect.signature(cls).parameters.values() if p.kind is inspect.Parameter.VAR_KEYWORD]
+    if rest and issubclass(cls, SequenceDataset):
+        split_config(bound.arguments.get(rest[0], {}), *cls.config_schemas, dataset=name)
+
+
 def _check_components(cfg) -> None:
     """Every named component exists and accepts every key its config node passes to the constructor."""
     load_plugins()
@@ -66,8 +80,8 @@ def _check_components(cfg) -> None:
             assert name in REGISTRIES[kind], f"{group}: '{name}' is not a registered {kind}"
             cls = REGISTRIES[kind].entry(name).cls
             try:
-                inspect.signature(cls).bind_partial(**node)
-            except TypeError as exc:
+                _check_keys(cls, node, name)
+            except (TypeError, ValueError) as exc:
                 msg = f"{group}={name}: config keys {sorted(node)} do not fit {cls.__name__}: {exc}"
                 raise AssertionError(msg) from None
     for key, spec in cfg.loss.terms.items():

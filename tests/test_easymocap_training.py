@@ -79,7 +79,7 @@ def _train(tmp_path: Path, name: str, *overrides: str) -> float:
 
 def test_same_psnr_in_both_layouts(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path / "cache"))
-    settings = StudioSettings(resolution=32, views=4, frames=4, body="procedural", supersample=1)
+    settings = StudioSettings(resolution=32, num_views=4, num_frames=4, body="procedural", supersample=1)
     zju = generate(settings, tmp_path / "zju", workers=1, progress=False)
     zju_to_easymocap(zju, tmp_path / "easymocap")
     psnr_zju = _train(

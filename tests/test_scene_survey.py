@@ -23,7 +23,7 @@ ARM_JOINTS = {"upperarm.L", "lowerarm.L", "upperarm.R", "lowerarm.R"}  # what mo
 def _studio(tmp_path_factory, **kwargs):
     from plugins.dataset.synthetic_studio import SyntheticStudioDataset
 
-    settings = {"resolution": 64, "views": 4, "frames": 6, "body": "procedural", "supersample": 1, "workers": 1}
+    settings = {"resolution": 64, "num_views": 4, "num_frames": 6, "body": "procedural", "supersample": 1, "workers": 1}
     settings.update(kwargs)
     name = "_".join(f"{k}{v}" for k, v in sorted(kwargs.items())) or "base"
     return SyntheticStudioDataset(root=str(tmp_path_factory.mktemp("studio") / name), **settings)
@@ -37,7 +37,7 @@ def body():
 @pytest.fixture(scope="module")
 def looks(tmp_path_factory, body):
     """Surveys of the same arms-only capture in matte and glossy cloth, and of a near-static capture (128 px)."""
-    size = {"resolution": 128, "views": 8, "frames": 4}
+    size = {"resolution": 128, "num_views": 8, "num_frames": 4}
     out = {}
     for name, kwargs in {
         "matte": {"motion": "arms"},

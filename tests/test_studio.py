@@ -12,7 +12,7 @@ import torch
 from framework.data import raycast
 from framework.data.studio import StudioSettings, generate
 
-SMALL = StudioSettings(resolution=64, views=4, frames=3, seed=0, body="procedural", supersample=1)
+SMALL = StudioSettings(resolution=64, num_views=4, num_frames=3, seed=0, body="procedural", supersample=1)
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_deterministic_for_a_seed(seq, tmp_path):
 
 def test_second_run_reuses_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path))
-    s = StudioSettings(**{**SMALL.__dict__, "frames": 2, "views": 2})
+    s = StudioSettings(**{**SMALL.__dict__, "num_frames": 2, "num_views": 2})
     first = generate(s, workers=1, progress=False)
     n = raycast.render_call_count()
     assert str(first).startswith(str(tmp_path)) and (first / "annots.npy").is_file()
@@ -68,7 +68,7 @@ def test_layout_read_by_zju_loader_and_vertices_project_into_masks(seq):
     assert ds[0].image.shape == (1, 64, 64, 3) and ds[0].pose.shape == (1, 17, 3)
     inside = strict = total = 0
     agree = []
-    for f in range(SMALL.frames):
+    for f in range(SMALL.num_frames):
         verts = np.load(seq / f"vertices/{f}.npy").astype(np.float64)  # [V, 3]
         mesh = trimesh.Trimesh(verts, faces, process=False)
         for v in range(4):
@@ -177,7 +177,9 @@ def test_pose_dependent_shading_same_canonical_point():
 def test_synthetic_studio_dataset_splits(seq):
     from plugins.dataset.synthetic_studio import SyntheticStudioDataset
 
-    kw = dict(root=str(seq), resolution=64, views=4, frames=3, seed=0, body="procedural", supersample=1, workers=1)
+    kw = dict(
+        root=str(seq), resolution=64, num_views=4, num_frames=3, seed=0, body="procedural", supersample=1, workers=1
+    )
     train = SyntheticStudioDataset(split="train", **kw)
     nv = SyntheticStudioDataset(split="novel_view", **kw)
     npose = SyntheticStudioDataset(split="novel_pose", **kw)
@@ -198,7 +200,7 @@ def test_interrupted_generation_resumes_without_redoing_frames(tmp_path, monkeyp
     import framework.data.studio as studio
     from framework.data.zju.reader import ZjuSequence
 
-    settings = StudioSettings(**{**SMALL.__dict__, "resolution": 24, "views": 2, "frames": 4})
+    settings = StudioSettings(**{**SMALL.__dict__, "resolution": 24, "num_views": 2, "num_frames": 4})
     rendered: list[int] = []
     real = studio._render_frame
 

@@ -17,8 +17,8 @@ from framework.data.zju.layout import load_pickled_dict, read_image, read_mask_f
 
 REALISTIC = StudioSettings(
     resolution=64,
-    views=4,
-    frames=12,
+    num_views=4,
+    num_frames=12,
     seed=0,
     body="procedural",
     supersample=1,
@@ -51,14 +51,14 @@ def _params(root, sub: str, f: int) -> dict:
 def test_default_settings_keep_their_cache_key():
     """Knobs at their defaults leave the key (and so every sequence rendered before they existed) unchanged."""
     assert StudioSettings().key() == "2e28c7017374"
-    assert StudioSettings(resolution=128, views=12, frames=60, supersample=2).key() == "3847c481d447"
+    assert StudioSettings(resolution=128, num_views=12, num_frames=60, supersample=2).key() == "3847c481d447"
     assert REALISTIC.key() != dataclasses.replace(REALISTIC, garment="none").key()
 
 
 def test_stored_poses_carry_the_requested_fitting_noise(seq):
     """params/ vs ground_truth/params: per-joint rotation error of 3 degrees RMS, root jitter of 1 cm RMS."""
     angles, shifts = [], []
-    for f in range(REALISTIC.frames):
+    for f in range(REALISTIC.num_frames):
         fit, clean = _params(seq, "", f), _params(seq, "ground_truth", f)
         a = Rotation.from_rotvec(fit["poses"].reshape(-1, 3).astype(np.float64))
         b = Rotation.from_rotvec(clean["poses"].reshape(-1, 3).astype(np.float64))
@@ -95,7 +95,7 @@ def test_parser_masks_err_in_a_band_of_the_requested_width(seq):
     w = REALISTIC.mask_error_px
     reach, changed_share = [], []
     for f in (0, 6, 11):
-        for v in range(REALISTIC.views):
+        for v in range(REALISTIC.num_views):
             rel = f"Camera_B{v + 1}/{f:06d}.png"
             exact = read_mask_file(seq / "mask" / rel).astype(bool)
             parsed = read_mask_file(seq / "mask_cihp" / rel).astype(bool)
@@ -126,7 +126,7 @@ def test_skirt_moves_unlike_the_body_skinning(seq, body):
     w = surface_weights(body.rest_vertices, body.faces, body.skin_weights, rest)  # [Vs, J]
     zs = ZjuSequence(seq)
     errors, inside = [], []
-    for f in range(REALISTIC.frames):
+    for f in range(REALISTIC.num_frames):
         p = _params(seq, "ground_truth", f)
         G = body.bone_transforms(torch.as_tensor(p["poses"].reshape(1, -1, 3)))[0].double().numpy()  # [J, 4, 4]
         blended = np.einsum("vj,jab->vab", w, G)  # [Vs, 4, 4]
@@ -135,7 +135,7 @@ def test_skirt_moves_unlike_the_body_skinning(seq, body):
         skinned = local @ R.T + p["Th"].reshape(3)
         truth = np.load(seq / "ground_truth" / "garment" / f"{f}.npy").astype(np.float64)
         errors.append(np.linalg.norm(truth - skinned, axis=1))
-        for v in range(REALISTIC.views):
+        for v in range(REALISTIC.num_views):
             w2c = zs.cameras.world_to_cam()[v]
             cam = Camera(zs.cameras.K_splatrig()[v], w2c, REALISTIC.resolution, REALISTIC.resolution)
             xy, _ = cam.project(truth)
@@ -152,8 +152,8 @@ def test_skirt_moves_unlike_the_body_skinning(seq, body):
 
 def test_subject_fills_the_requested_share_of_the_image_height(seq):
     heights = []
-    for f in range(0, REALISTIC.frames, 3):
-        for v in range(REALISTIC.views):
+    for f in range(0, REALISTIC.num_frames, 3):
+        for v in range(REALISTIC.num_views):
             rows = np.flatnonzero(read_mask_file(seq / "mask" / f"Camera_B{v + 1}/{f:06d}.png").any(1))
             heights.append((rows[-1] - rows[0] + 1) / REALISTIC.resolution)
     assert np.median(heights) == pytest.approx(0.85, abs=0.07)

@@ -29,13 +29,14 @@ import logging
 import re
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import torch
 
 from framework.atomic import atomic_path
 from framework.data.boundary import boundary_mask, scaled_half_width
+from framework.data.options import SequenceOptions
 from framework.data.zju.layout import ZjuFormatError, ZjuMissingFileError, check_complete
 from framework.data.zju.reader import ZjuCameras
 from framework.geometry import axis_angle_to_rotmat
@@ -159,88 +160,68 @@ class LRU:
 
 
 class SequenceDataset(MultiViewDataset):
-    """One split of a sequence read by `seq`; subclasses resolve their layout's presets and call `__init__`.
+    """One split of a sequence read by `seq`; subclasses open their layout, resolve its presets into `options` and
+    call `__init__`.
 
-    `train_views` / `test_views` / `novel_pose_views` are view indices (test views default to every view not trained
-    on, view 0 when that leaves none, like Animatable NeRF; novel-pose views default to the test views). Frames are
-    `frame_range` specs; evaluation splits take every `eval_frame_step`-th frame of theirs.
+    `options.train_views` / `test_views` / `novel_pose_views` are view indices (train views default to every view,
+    test views to every view not trained on, view 0 when that leaves none, like Animatable NeRF; novel-pose views to
+    the test views). Frames are `frame_range` specs; evaluation splits take every `eval_frame_step`-th frame of theirs.
     """
 
-    def __init__(
-        self,
-        seq: MultiViewSequence,
-        *,
-        split: str,
-        train_views: list[int],
-        test_views: list[int] | None,
-        novel_pose_views: list[int] | None,
-        train_frames: Any,
-        novel_pose_frames: Any,
-        eval_frame_step: int,
-        downscale: float,
-        boundary_px: int,
-        mask_dir: str,
-        body: str | None,
-        white_background: bool,
-        mask_background: bool,
-        bounds_margin: float,
-        cache_mb: float,
-        boundary_cache: str,
-        cache_dir: str | None,
-        boundary_ref_side: int | None = None,
-    ) -> None:
+    #: the dataclasses a subclass's config keys (beyond its own parameters) are dealt out to
+    config_schemas: ClassVar[tuple[type, ...]] = (SequenceOptions,)
+
+    def __init__(self, seq: MultiViewSequence, *, split: str, options: SequenceOptions) -> None:
         super().__init__()
         name = self.label
         if split not in SPLITS:
             raise ValueError(f"{name}: split must be one of {SPLITS}, got '{split}'")
-        if boundary_cache not in ("memory", "disk"):
-            raise ValueError(f"{name}: boundary_cache must be 'memory' or 'disk', got '{boundary_cache}'")
-        if not downscale >= 1.0:
-            raise ValueError(f"{name}: downscale must be >= 1 (an image size divisor), got {downscale}")
         self.seq = seq
         self.root = seq.root
         self.split = split
-        self.downscale = float(downscale)
-        self.mask_dir = mask_dir
-        self.background = 1.0 if white_background else 0.0
-        self.mask_background = mask_background
+        self.options = options
+        self.mask_dir = options.mask_dir
+        self.background = 1.0 if options.white_background else 0.0
         self.num_frames_total = seq.num_frames
         C = seq.num_views
 
         # ---- views and frames of the split
         views_all = list(range(C))
-        self.train_views = list(train_views)
+        self.train_views = list(options.train_views) if options.train_views is not None else views_all
         complement = [v for v in views_all if v not in self.train_views]
-        self.test_views = list(test_views) if test_views is not None else (complement or [0])
-        self.novel_pose_views = list(novel_pose_views) if novel_pose_views is not None else self.test_views
+        self.test_views = list(options.test_views) if options.test_views is not None else (complement or [0])
+        self.novel_pose_views = (
+            list(options.novel_pose_views) if options.novel_pose_views is not None else self.test_views
+        )
         for what, vs in (
             ("train_views", self.train_views),
             ("test_views", self.test_views),
             ("novel_pose_views", self.novel_pose_views),
         ):
-            bad = [v for v in vs if not 0 <= int(v) < C]
+            bad = [v for v in vs if not (isinstance(v, int) and 0 <= v < C)]
             if bad or not vs:
                 raise ValueError(f"{name}: {what}={vs} must be non-empty view indices in 0..{C - 1} ({self.root})")
-        self.train_frame_ids = frame_range(train_frames, self.num_frames_total, "train_frames")
-        step = int(eval_frame_step)
+        self.train_frame_ids = frame_range(options.train_frames, self.num_frames_total, "train_frames")
+        step = options.eval_frame_step or 1
         if split == "train":
             self.frame_ids, self.views = self.train_frame_ids, self.train_views
         elif split == "novel_view":
             self.frame_ids, self.views = self.train_frame_ids[::step], self.test_views
         else:
-            if novel_pose_frames is None:
+            if options.novel_pose_frames is None:
                 raise ValueError(f"{name}: split 'novel_pose' needs novel_pose_frames=[start, end, step]")
-            self.frame_ids = frame_range(novel_pose_frames, self.num_frames_total, "novel_pose_frames")[::step]
+            self.frame_ids = frame_range(options.novel_pose_frames, self.num_frames_total, "novel_pose_frames")[::step]
             self.views = self.novel_pose_views
 
         # ---- poses (whole sequence: pose-refinement tables are num_frames_total long)
-        self._load_params(body)
+        self._load_params(options.body)
 
         # ---- every image and mask of the split: present, complete, one size (the reader checks the cameras)
-        self.src_width, self.src_height = check_files(seq, self.frame_ids, self.views, mask_dir)
-        self.width = max(1, int(self.src_width / self.downscale))
-        self.height = max(1, int(self.src_height / self.downscale))
-        self.boundary_px = scaled_half_width(int(boundary_px), min(self.width, self.height), boundary_ref_side)
+        self.src_width, self.src_height = check_files(seq, self.frame_ids, self.views, self.mask_dir)
+        self.width = max(1, int(self.src_width / options.downscale))
+        self.height = max(1, int(self.src_height / options.downscale))
+        side = min(self.width, self.height)
+        self.boundary_px = scaled_half_width(options.boundary_px, side, options.boundary_ref_side)
         K = seq.cameras.K_splatrig()  # [C, 3, 3]
         K[:, 0] *= self.width / self.src_width
         K[:, 1] *= self.height / self.src_height
@@ -250,16 +231,16 @@ class SequenceDataset(MultiViewDataset):
             width=self.width,
             height=self.height,
         )
-        self.bounds = self._compute_bounds(bounds_margin)
+        self.bounds = self._compute_bounds(options.bounds_margin)
 
         # ---- caches
-        self._lru = LRU(int(cache_mb * 2**20))
+        self._lru = LRU(int(options.cache_mb * 2**20))
         self._undistort_maps: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
         self._boundary_mem: dict[tuple[int, int], np.ndarray] = {}
         self.boundary_computations = 0
         self._boundary_dir: Path | None = None
-        if boundary_cache == "disk":
-            self._boundary_dir = self._pick_cache_dir(cache_dir)
+        if options.boundary_cache == "disk":
+            self._boundary_dir = self._pick_cache_dir(options.cache_dir)
 
     @property
     def label(self) -> str:
@@ -461,7 +442,7 @@ class SequenceDataset(MultiViewDataset):
         img_u8, m_u8 = self.load_uint8(frame, view)
         image = torch.from_numpy(img_u8).float().div_(255.0)  # [H, W, 3]
         mask = torch.from_numpy(m_u8).float().div_(255.0)  # [H, W]
-        if self.mask_background:
+        if self.options.mask_background:
             image = image * mask[..., None] + self.background * (1.0 - mask[..., None])
         boundary = torch.from_numpy(self.boundary(frame, view, m_u8))
         return FrameBatch(

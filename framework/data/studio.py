@@ -1,10 +1,10 @@
 """The synthetic studio: a multi-view video of a posed, clothed body, ray-cast and written in the ZJU-MoCap layout.
 
-    python -m framework.data.studio --out DIR --resolution 512 --views 21 --frames 100 --seed 0 --body anny
+    python -m framework.data.studio --out DIR --resolution 512 --num-views 21 --num-frames 100 --seed 0 --body anny
 
 What it makes (deterministic for the settings; cached by a hash of them, so a second run reuses the sequence, and an
 interrupted one resumes: the frames it finished are kept):
-- Cameras: a ring of `views` calibrated pinhole cameras at `radius` m around the subject, heights alternating around
+- Cameras: a ring of `num_views` calibrated pinhole cameras at `radius` m around the subject, heights alternating around
   1.3 m, all looking at the body's centre (OpenCV K/R/T, D = 0), like ZJU-MoCap's capture dome.
 - Motion (`framework.data.motions`): the anny walk cycle, arm raises, squats and kicks for training, and a held-out
   turn-and-reach motion for novel-pose evaluation; each frame's pose is stored with the body-model name.
@@ -40,7 +40,7 @@ import multiprocessing as mp
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,11 +69,19 @@ LOOKS: dict[str, tuple[raycast.Shading, float, float]] = {
 }
 
 
+#: the hash input's names of the fields renamed by the dataset-key rule (framework.dataset_keys), so a studio
+#: rendered before the rename keeps its key and its cache
+HASH_NAMES = {"num_views": "views", "num_frames": "frames"}
+
+
 @dataclass(frozen=True)
 class StudioSettings:
+    """What the rendered sequence depends on (its cache key); the synthetic_studio dataset's config keys of the same
+    names. Numbers are normalised to their field's type, so `3` and `3.0` name the same sequence."""
+
     resolution: int = 512
-    views: int = 21
-    frames: int = 100
+    num_views: int = 21
+    num_frames: int = 100
     seed: int = 0
     body: str = "anny"
     skeleton: str = "reduced"  # anny only: "reduced" (22 bones) or "full" (104)
@@ -95,6 +103,9 @@ class StudioSettings:
     def __post_init__(self) -> None:
         from framework.data.motions import PROGRAMS
 
+        self._normalise_numbers()
+        if self.num_views < 1 or self.num_frames < 1:
+            raise ValueError(f"studio: num_views and num_frames must be >= 1, got {self.num_views}, {self.num_frames}.")
         if self.garment not in GARMENTS:
             raise ValueError(f"studio: garment must be one of {GARMENTS}, got '{self.garment}'.")
         if self.subject_height_fraction is not None and not 0.05 < self.subject_height_fraction <= 1.5:
@@ -110,10 +121,22 @@ class StudioSettings:
         if self.look not in LOOKS:
             raise ValueError(f"studio: look '{self.look}' is not one of {sorted(LOOKS)}.")
 
+    def _normalise_numbers(self) -> None:
+        """int / float fields as int / float (a config may give 3 for 3.0): the key hashes their JSON text."""
+        casts = {"int": (int, "an integer"), "float": (float, "a number"), "float | None": (float, "a number or null")}
+        for f in fields(self):
+            cast, expected = casts.get(str(f.type), (None, ""))
+            value = getattr(self, f.name)
+            if cast is None or value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int | float) or (cast is int and value != int(value)):
+                raise ValueError(f"studio: {f.name} must be {expected}, got {value!r}.")
+            object.__setattr__(self, f.name, cast(value))
+
     def key(self) -> str:
         """Hash of the settings; knobs left at their defaults are left out, so sequences rendered before a knob
-        existed keep their key (and their cache)."""
-        values = asdict(self)
+        existed keep their key (and their cache), and renamed fields are hashed under their old names."""
+        values = {HASH_NAMES.get(k, k): v for k, v in asdict(self).items()}
         for name, default in {**IMPERFECTION_DEFAULTS, "motion": "default", "look": "default"}.items():
             if values[name] == default:
                 del values[name]
@@ -145,14 +168,14 @@ def ring_radius(settings: StudioSettings, subject_height: float) -> float:
 
 
 def camera_ring(settings: StudioSettings, target: np.ndarray, radius: float | None = None) -> list[raycast.Camera]:
-    """`views` cameras evenly spaced on a ring (seeded azimuth offset), heights alternating 1.1 / 1.5 m."""
+    """`num_views` cameras evenly spaced on a ring (seeded azimuth offset), heights alternating 1.1 / 1.5 m."""
     rng = np.random.default_rng(settings.seed + 7)
     az0 = rng.uniform(0, 2 * np.pi)
     K = raycast.intrinsics(settings.fov_deg, settings.resolution, settings.resolution)
     radius = settings.radius if radius is None else radius
     cams = []
-    for i in range(settings.views):
-        az = az0 + 2 * np.pi * i / settings.views
+    for i in range(settings.num_views):
+        az = az0 + 2 * np.pi * i / settings.num_views
         h = 1.1 + 0.4 * (i % 2)
         eye = np.array([radius * np.cos(az), radius * np.sin(az), h])
         cams.append(raycast.Camera(K, raycast.look_at(eye, target), settings.resolution, settings.resolution))
@@ -261,9 +284,9 @@ def generate(
     t0 = time.perf_counter()
     body = build_body(settings.body, settings.skeleton)
     rig = Rig.from_body(body)
-    seq = build_sequence(rig, settings.frames, seed=settings.seed, program=PROGRAMS[settings.motion])
+    seq = build_sequence(rig, settings.num_frames, seed=settings.seed, program=PROGRAMS[settings.motion])
     shading, wrinkle_strength, broad_strength = LOOKS[settings.look]
-    F = settings.frames
+    F = settings.num_frames
     with torch.no_grad():
         local = body.posed_vertices(torch.as_tensor(seq.poses)).double().numpy()  # [F, V, 3]
     Rroot = axis_angle_to_matrix(seq.Rh.astype(np.float64))  # [F, 3, 3]
@@ -287,7 +310,7 @@ def generate(
     target = np.array([0.0, 0.0, (0.5 if framed else 0.55) * rest_h])
     radius = ring_radius(settings, rest_h)
     cams = camera_ring(settings, target, radius)
-    names = zju_camera_names(settings.views)
+    names = zju_camera_names(settings.num_views)
     skirt, skirt_posed = _skirt(settings, body, rig, seq.poses, Rroot, Th)
     fit_poses, fit_Th, fitted = _fitted(settings, body, seq.poses, Rroot, Th, posed)
     params = [
@@ -331,7 +354,7 @@ def generate(
     bar = tqdm(
         total=F,
         initial=F - len(todo),
-        desc=f"studio {settings.resolution}px x {settings.views} views",
+        desc=f"studio {settings.resolution}px x {settings.num_views} views",
         unit="frame",
         disable=not progress,
     )
@@ -448,8 +471,8 @@ def main(argv: list[str] | None = None) -> None:
         "--out", default=None, help="output directory (default: the cache, <data_dir>/synthetic_studio/<hash>)"
     )
     ap.add_argument("--resolution", type=int, default=d.resolution, help="square image size in pixels (default 512)")
-    ap.add_argument("--views", type=int, default=d.views, help="cameras on the ring (default 21, like ZJU-MoCap)")
-    ap.add_argument("--frames", type=int, default=d.frames, help="frames in the sequence (default 100)")
+    ap.add_argument("--num-views", type=int, default=d.num_views, help="cameras on the ring (default 21, like ZJU)")
+    ap.add_argument("--num-frames", type=int, default=d.num_frames, help="frames in the sequence (default 100)")
     ap.add_argument("--seed", type=int, default=d.seed, help="motion amplitudes, colours and camera azimuths")
     ap.add_argument("--body", default=d.body, help="body model registry name: anny (default) or procedural")
     ap.add_argument(
@@ -475,8 +498,8 @@ def main(argv: list[str] | None = None) -> None:
     a = ap.parse_args(argv)
     s = StudioSettings(
         resolution=a.resolution,
-        views=a.views,
-        frames=a.frames,
+        num_views=a.num_views,
+        num_frames=a.num_frames,
         seed=a.seed,
         body=a.body,
         skeleton=a.skeleton,
@@ -497,7 +520,7 @@ def main(argv: list[str] | None = None) -> None:
     meta = json.loads((root / "studio.json").read_text())
     print(f"sequence: {root}")
     print(
-        f"frames {s.frames} x views {s.views} at {s.resolution}px; this call {dt:.1f} s "
+        f"frames {s.num_frames} x views {s.num_views} at {s.resolution}px; this call {dt:.1f} s "
         f"(rendered in {meta['render_seconds']} s when generated); disk {disk_size(root) / 2**20:.1f} MiB"
     )
     segs = ", ".join(f"{g['name']} {g['start']}-{g['end'] - 1} [{g['split']}]" for g in meta["segments"])

@@ -9,6 +9,7 @@ over the target (`framework.atomic`), so `last.ckpt` is always the previous comp
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from framework.atomic import atomic_path, remove_stale_temporaries
+from framework.dataset_keys import upgrade_data_config
 from framework.errors import SplatrigError
 from framework.paths import checkpoint_file
 
@@ -26,7 +28,8 @@ class CheckpointError(SplatrigError):
 
 def read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", what: str = "ckpt") -> dict[str, Any]:
     """torch.load of a splatrig checkpoint (`demo`: the shipped avatar); any failure is a CheckpointError naming the
-    file and the fix."""
+    file and the fix. Every checkpoint is read here, so this is where an older one's stored dataset keys are
+    translated to today's (`framework.dataset_keys.upgrade_data_config`)."""
     path = checkpoint_file(path)
     if not path.is_file():
         raise CheckpointError(
@@ -47,6 +50,8 @@ def read_checkpoint(path: str | os.PathLike, map_location: Any = "cpu", what: st
             f"{what}={path}: not a splatrig checkpoint (expected the keys state_dict and hyper_parameters.cfg "
             f"written by python -m framework.train, found {found})."
         )
+    if isinstance(cfg.get("data"), Mapping):  # written before a dataset key was renamed: read under today's names
+        cfg["data"] = upgrade_data_config(cfg["data"])
     return ckpt
 
 

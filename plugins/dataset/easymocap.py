@@ -17,17 +17,20 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from framework.data.easymocap_layout import EasyMocapSequence
+from framework.data.options import SequenceOptions
 from framework.data.sequence_dataset import SequenceDataset
 from framework.registry import register
 
 _ANNOUNCED: set[tuple[str, str]] = set()
 
 
-def view_indices(views: list[Any] | None, names: list[str], what: str) -> list[int] | None:
+def view_indices(views: Sequence[int | str] | None, names: list[str], what: str) -> list[int] | None:
     """Camera names or indices -> indices (None stays None); names win when a value is both."""
     if views is None:
         return None
@@ -44,40 +47,28 @@ def view_indices(views: list[Any] | None, names: list[str], what: str) -> list[i
 
 @register("dataset", "easymocap")
 class EasyMocapDataset(SequenceDataset):
-    """One split of an EasyMocap capture; see the module docstring."""
+    """One split of an EasyMocap capture; see the module docstring.
+
+    The layout's own keys are its parameters (which cameras, parameter and vertex folders, person, the SMPL-X file for
+    hand-PCA poses); every other key is a `SequenceOptions` field, views given as indices or camera names."""
 
     def __init__(
         self,
         root: str,
         split: str = "train",
         cameras: list[str] | None = None,
-        train_views: list[Any] | None = None,
-        test_views: list[Any] | None = None,
-        novel_pose_views: list[Any] | None = None,
-        train_frames: Any = None,
-        novel_pose_frames: Any = None,
-        eval_frame_step: int = 1,
-        downscale: float = 1.0,
-        boundary_px: int = 5,
-        boundary_ref_side: int | None = None,
-        mask_dir: str = "auto",
         params_dir: str = "auto",
         vertices_dir: str | None = "auto",
         person_id: int | None = None,
-        body: str | None = None,
         body_model_path: str | None = None,
         body_gender: str = "neutral",
-        white_background: bool = False,
-        mask_background: bool = True,
-        bounds_margin: float = 0.1,
-        cache_mb: float = 512.0,
-        boundary_cache: str = "memory",
-        cache_dir: str | None = None,
+        **options: Any,
     ) -> None:
+        opts = SequenceOptions.from_config(options, "easymocap")
         seq = EasyMocapSequence(
             Path(os.path.expanduser(str(root))),
             cameras=None if cameras is None else [str(c) for c in cameras],
-            mask_dir=mask_dir,
+            mask_dir=opts.mask_dir,
             params_dir=params_dir,
             vertices_dir=vertices_dir,
             person_id=person_id,
@@ -96,28 +87,15 @@ class EasyMocapDataset(SequenceDataset):
                 file=sys.stderr,
             )
         names = seq.camera_names
-        test = view_indices(test_views, names, "test_views")
-        train = view_indices(train_views, names, "train_views")
+        test = view_indices(opts.test_views, names, "test_views")
+        train = view_indices(opts.train_views, names, "train_views")
         if train is None:
             train = [v for v in range(seq.num_views) if test is None or v not in test] or list(range(seq.num_views))
-        super().__init__(
-            seq,
-            split=split,
+        opts = replace(
+            opts,
             train_views=train,
             test_views=test,
-            novel_pose_views=view_indices(novel_pose_views, names, "novel_pose_views"),
-            train_frames=train_frames,
-            novel_pose_frames=novel_pose_frames,
-            eval_frame_step=eval_frame_step,
-            downscale=downscale,
-            boundary_px=boundary_px,
-            boundary_ref_side=boundary_ref_side,
+            novel_pose_views=view_indices(opts.novel_pose_views, names, "novel_pose_views"),
             mask_dir=seq.mask_dir,
-            body=body,
-            white_background=white_background,
-            mask_background=mask_background,
-            bounds_margin=bounds_margin,
-            cache_mb=cache_mb,
-            boundary_cache=boundary_cache,
-            cache_dir=cache_dir,
         )
+        super().__init__(seq, split=split, options=opts)
