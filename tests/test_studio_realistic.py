@@ -161,3 +161,22 @@ def test_subject_fills_the_requested_share_of_the_image_height(seq):
     assert meta["imperfections"]["subject_height_fraction"] == 0.85 and meta["ground_truth"] == "ground_truth"
     image = read_image(seq / "Camera_B1" / "000000.jpg")
     assert image.shape == (64, 64, 3)
+
+
+def test_the_reader_takes_the_true_poses_when_asked(seq):
+    """params_dir / vertices_dir select ground_truth/ (what the images were rendered from) over the noisy stored fit;
+    a folder that does not exist is refused in one sentence."""
+    from framework.data.zju.dataset import ZjuMocapDataset
+    from framework.data.zju.layout import ZjuMissingFileError
+
+    kw = dict(root=str(seq), split="train", protocol=None, train_frames=[0, 12, 1], novel_pose_frames=[11])
+    true = ZjuMocapDataset(**kw, params_dir="ground_truth/params", vertices_dir="ground_truth/vertices")
+    stored = ZjuMocapDataset(**kw)
+    for f in (0, 5):
+        clean, noisy = _params(seq, "ground_truth", f), _params(seq, ".", f)
+        np.testing.assert_array_equal(true.seq.params(f)["poses"].reshape(-1), clean["poses"].reshape(-1))
+        np.testing.assert_array_equal(stored.seq.params(f)["poses"].reshape(-1), noisy["poses"].reshape(-1))
+        assert not np.allclose(clean["poses"], noisy["poses"])
+        np.testing.assert_array_equal(true.seq.vertices(f), np.load(seq / "ground_truth" / "vertices" / f"{f}.npy"))
+    with pytest.raises(ZjuMissingFileError, match="params_dir=truth: .* is not a folder; use params_dir=auto"):
+        ZjuMocapDataset(**kw, params_dir="truth")

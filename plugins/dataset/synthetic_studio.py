@@ -42,6 +42,8 @@ class SyntheticStudioDataset(ZjuMocapDataset):
         workers: int = 2,
         test_view_every: int = 4,
         test_view_offset: int = 2,
+        params_dir: str = "auto",
+        vertices_dir: str = "auto",
         **config: Any,
     ) -> None:
         studio, options = split_config(config, *self.config_schemas, dataset="synthetic_studio")
@@ -60,4 +62,7 @@ class SyntheticStudioDataset(ZjuMocapDataset):
             "novel_pose_frames": _as_range(meta["novel_pose_frames"]),
         }
         # keys the config gives win over the studio's split; the body is the one the sequence was posed with
-        super().__init__(root=str(path), split=split, protocol=None, **{**layout, **options, "body": meta["body"]})
+        folders = {"params_dir": params_dir, "vertices_dir": vertices_dir}
+        super().__init__(
+            root=str(path), split=split, protocol=None, **folders, **{**layout, **options, "body": meta["body"]}
+        )

@@ -25,8 +25,8 @@ __all__ = ["ZjuMocapDataset"]
 class ZjuMocapDataset(SequenceDataset):
     """One split of a ZJU-MoCap-layout sequence; see the module docstring for conventions and protocols.
 
-    `root`, `protocol` and `sequence` are the layout's own keys; every other key is a `SequenceOptions` field
-    (views, frames, image preparation, caches), and what it leaves null the protocol fills in."""
+    `root`, `protocol`, `sequence`, `params_dir` and `vertices_dir` are the layout's own keys; every other key is a
+    `SequenceOptions` field (views, frames, images, caches); the protocol fills in what it leaves null."""
 
     def __init__(
         self,
@@ -34,13 +34,15 @@ class ZjuMocapDataset(SequenceDataset):
         split: str = "train",
         protocol: str | None = "aninerf_4view",
         sequence: str | None = None,
+        params_dir: str = "auto",
+        vertices_dir: str = "auto",
         **options: Any,
     ) -> None:
         opts = SequenceOptions.from_config(options, "zju_mocap")
         if opts.mask_dir not in ("auto", "mask", "mask_cihp"):
             raise ValueError(f"zju_mocap: mask_dir must be 'auto', 'mask' or 'mask_cihp', got '{opts.mask_dir}'")
         root_path = Path(os.path.expanduser(str(root)))
-        seq = ZjuSequence(root_path)
+        seq = ZjuSequence(root_path, params_dir=params_dir, vertices_dir=vertices_dir)
         if opts.mask_dir != "auto" and not (root_path / opts.mask_dir).is_dir():
             raise ZjuMissingFileError(
                 f"zju_mocap: mask_dir='{opts.mask_dir}' but {root_path / opts.mask_dir} does not exist; "

@@ -87,7 +87,9 @@ class ZjuCameras:
 class ZjuSequence:
     """Lazy reader of one sequence: parses annots.npy; images, masks, params and vertices are read on demand."""
 
-    def __init__(self, root: str | os.PathLike) -> None:
+    def __init__(self, root: str | os.PathLike, params_dir: str = "auto", vertices_dir: str = "auto") -> None:
+        """`params_dir` / `vertices_dir`: folders under root ("auto": params/ or new_params/, vertices/ or
+        new_vertices/), e.g. the synthetic studio's ground_truth/params with the poses it was rendered from."""
         self.root = Path(root)
         path = self.root / ANNOTS
         if not path.exists():
@@ -107,8 +109,16 @@ class ZjuSequence:
         self.camera_dirs = [os.path.dirname(p) for p in self.ims[0]]
         self.camera_names = [os.path.basename(d) or d for d in self.camera_dirs]
         self.file_numbers = [frame_number_from_path(row[0]) for row in self.ims]
-        self.params_dir = next((d for d in PARAMS_DIRS if (self.root / d).is_dir()), None)
-        self.vertices_dir = next((d for d in VERTICES_DIRS if (self.root / d).is_dir()), None)
+        self.params_dir = self._folder(params_dir, PARAMS_DIRS, "params_dir")
+        self.vertices_dir = self._folder(vertices_dir, VERTICES_DIRS, "vertices_dir")
+
+    def _folder(self, name: str, auto: tuple[str, ...], key: str) -> str | None:
+        """The folder `name` under root, or with "auto" the first of `auto` that exists (None: none does)."""
+        if name == "auto":
+            return next((d for d in auto if (self.root / d).is_dir()), None)
+        if not (self.root / name).is_dir():
+            raise ZjuMissingFileError(f"{key}={name}: {self.root / name} is not a folder; use {key}=auto")
+        return name
 
     def _listing(self) -> str:
         if not self.root.exists():
