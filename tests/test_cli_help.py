@@ -7,7 +7,19 @@ import sys
 
 import pytest
 
-VERBS = ["train", "evaluate", "render", "view", "export", "prune", "survey", "report", "data.convert", "data.check"]
+VERBS = [
+    "train",
+    "evaluate",
+    "render",
+    "view",
+    "export",
+    "prune",
+    "survey",
+    "report",
+    "data.convert",
+    "data.check",
+    "data.studio",
+]
 TAKES_GROUPS = {"train", "survey"}  # they compose the training config's groups; the others read a checkpoint
 
 

@@ -4,6 +4,7 @@ pose-dependent appearance."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -228,3 +229,22 @@ def test_interrupted_generation_resumes_without_redoing_frames(tmp_path, monkeyp
     for rel in files:
         assert (whole / rel).read_bytes() == (resumed / rel).read_bytes(), rel
     assert not list(resumed.glob(".*")), "leftovers of the interrupted run"
+
+
+def test_the_command_renders_the_sequence_training_reads(tmp_path, monkeypatch):
+    """`python -m framework.data.studio data=...` renders the same sequence (same settings hash, same folder) that a
+    training run with that data config builds its dataset from."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    from framework.build import build_split
+    from framework.data.studio import generate_from_config
+
+    monkeypatch.setenv("SPLATRIG_CACHE_DIR", str(tmp_path))
+    small = ["data.body=procedural", "data.resolution=24", "data.num_views=2", "data.num_frames=4", "data.workers=1"]
+    with initialize_config_module(config_module="framework.conf", version_base="1.3"):
+        cfg = compose(config_name="studio", overrides=small)
+    root = generate_from_config(OmegaConf.to_container(cfg.data, resolve=True))
+    dataset = build_split(cfg.data, "train")
+    assert Path(dataset.seq.root).resolve() == root.resolve()
+    assert root.parent == tmp_path / "data" / "synthetic_studio"

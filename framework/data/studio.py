@@ -33,12 +33,12 @@ With pose noise or a garment, ground_truth/ holds what the annotations do not: t
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import multiprocessing as mp
 import os
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -460,72 +460,52 @@ def disk_size(path: Path) -> int:
     return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
 
 
-def main(argv: list[str] | None = None) -> None:
-    d = StudioSettings()
-    ap = argparse.ArgumentParser(
-        prog="python -m framework.data.studio",
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    ap.add_argument(
-        "--out", default=None, help="output directory (default: the cache, <data_dir>/synthetic_studio/<hash>)"
-    )
-    ap.add_argument("--resolution", type=int, default=d.resolution, help="square image size in pixels (default 512)")
-    ap.add_argument("--num-views", type=int, default=d.num_views, help="cameras on the ring (default 21, like ZJU)")
-    ap.add_argument("--num-frames", type=int, default=d.num_frames, help="frames in the sequence (default 100)")
-    ap.add_argument("--seed", type=int, default=d.seed, help="motion amplitudes, colours and camera azimuths")
-    ap.add_argument("--body", default=d.body, help="body model registry name: anny (default) or procedural")
-    ap.add_argument(
-        "--skeleton", default=d.skeleton, choices=("reduced", "full"), help="anny skeleton (default reduced)"
-    )
-    ap.add_argument("--supersample", type=int, default=d.supersample, help="s x s rays per pixel (anti-aliasing)")
-    ap.add_argument("--radius", type=float, default=d.radius, help="camera ring radius in metres (default 3)")
-    ap.add_argument("--image-ext", default=d.image_ext, choices=(".jpg", ".png"), help="image format (default .jpg)")
-    ap.add_argument("--pose-noise-deg", type=float, default=0.0, help="RMS per-joint rotation noise of stored poses")
-    ap.add_argument("--root-noise-m", type=float, default=0.0, help="RMS root position jitter of stored poses (m)")
-    ap.add_argument("--mask-error-px", type=float, default=0.0, help="parser-like mask errors in mask_cihp/ (px)")
-    ap.add_argument("--garment", default="none", choices=GARMENTS, help="a loose garment (default none)")
-    ap.add_argument(
-        "--subject-height-fraction",
-        type=float,
-        default=None,
-        help="frame the subject to this fraction of the image height (overrides --radius)",
-    )
-    ap.add_argument("--motion", default=d.motion, help="motion program: default | idle (near-static) | arms")
-    ap.add_argument("--look", default=d.look, choices=sorted(LOOKS), help="default (matte cloth) | glossy")
-    ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="render processes (default 2)")
-    ap.add_argument("--force", action="store_true", help="re-render even if the sequence exists")
-    a = ap.parse_args(argv)
-    s = StudioSettings(
-        resolution=a.resolution,
-        num_views=a.num_views,
-        num_frames=a.num_frames,
-        seed=a.seed,
-        body=a.body,
-        skeleton=a.skeleton,
-        supersample=a.supersample,
-        radius=a.radius,
-        image_ext=a.image_ext,
-        pose_noise_deg=a.pose_noise_deg,
-        root_noise_m=a.root_noise_m,
-        mask_error_px=a.mask_error_px,
-        garment=a.garment,
-        subject_height_fraction=a.subject_height_fraction,
-        motion=a.motion,
-        look=a.look,
-    )
-    t = time.perf_counter()
-    root = generate(s, a.out, workers=a.workers, force=a.force)
-    dt = time.perf_counter() - t
-    meta = json.loads((root / "studio.json").read_text())
-    print(f"sequence: {root}")
-    print(
-        f"frames {s.num_frames} x views {s.num_views} at {s.resolution}px; this call {dt:.1f} s "
-        f"(rendered in {meta['render_seconds']} s when generated); disk {disk_size(root) / 2**20:.1f} MiB"
-    )
-    segs = ", ".join(f"{g['name']} {g['start']}-{g['end'] - 1} [{g['split']}]" for g in meta["segments"])
-    print(f"train frames {len(meta['train_frames'])}, novel-pose frames {len(meta['novel_pose_frames'])} ({segs})")
+#: keys of a studio dataset's config that say how it is read or split, not what is rendered
+_READER_KEYS = ("name", "root", "split", "workers", "test_view_every", "test_view_offset", "params_dir", "vertices_dir")
+
+
+def generate_from_config(data: dict, force: bool = False) -> Path:
+    """Render (or find) the studio a `data=synthetic_studio*` config describes; returns its folder."""
+    from framework.data.options import SequenceOptions
+    from framework.dataset_keys import split_config
+
+    rendered = {k: v for k, v in data.items() if k not in _READER_KEYS}
+    studio, _ = split_config(rendered, StudioSettings, SequenceOptions, dataset=str(data.get("name", "studio")))
+    workers = int(data.get("workers") or min(2, os.cpu_count() or 1))
+    return generate(StudioSettings(**studio), data.get("root"), workers=workers, force=force)
+
+
+def main() -> int:
+    from omegaconf import DictConfig, OmegaConf
+
+    from framework.cli import hydra_main
+    from framework.errors import SplatrigError, reported_as_message
+
+    @hydra_main("studio")
+    def _main(cfg: DictConfig) -> None:
+        with reported_as_message():
+            data = OmegaConf.to_container(cfg.data, resolve=True)
+            if not str(data.get("name", "")).startswith("synthetic_studio"):
+                raise SplatrigError(
+                    f"data={data.get('name')}: the studio renders synthetic_studio* datasets (data=synthetic_studio)"
+                )
+            t = time.perf_counter()
+            root = generate_from_config(data, force=bool(cfg.force))
+            dt = time.perf_counter() - t
+        meta = json.loads((root / "studio.json").read_text())
+        s = meta["settings"] if "settings" in meta else {}
+        print(f"sequence: {root}")
+        print(
+            f"frames {s.get('num_frames', s.get('frames', '?'))} x views {s.get('num_views', s.get('views', '?'))} at "
+            f"{s.get('resolution', '?')}px; this call {dt:.1f} s (rendered in {meta['render_seconds']} s when "
+            f"generated); disk {disk_size(root) / 2**20:.1f} MiB"
+        )
+        segs = ", ".join(f"{g['name']} {g['start']}-{g['end'] - 1} [{g['split']}]" for g in meta["segments"])
+        print(f"train frames {len(meta['train_frames'])}, novel-pose frames {len(meta['novel_pose_frames'])} ({segs})")
+
+    _main()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
