@@ -238,6 +238,7 @@ KNOBS = {
     "preset_realtime": {"corrector.", "gaussians.sh_degree", *BUDGET},
     "preset_small": {"gaussians.sh_degree", *BUDGET},
     "preset_quick": {"deformer.", "data.split_overrides.", *SCHEDULE},
+    "scene_auto": {"scene."},  # the choices themselves are made at run time, from the survey
 }
 
 
