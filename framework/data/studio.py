@@ -1,6 +1,6 @@
 """The synthetic studio: a multi-view video of a posed, clothed body, ray-cast and written in the ZJU-MoCap layout.
 
-    python -m framework.data.studio --out DIR --resolution 512 --num-views 21 --num-frames 100 --seed 0 --body anny
+    python -m framework.data.studio data=synthetic_studio profile=gpu data.root=DIR data.seed=0
 
 What it makes (deterministic for the settings; cached by a hash of them, so a second run reuses the sequence, and an
 interrupted one resumes: the frames it finished are kept):

@@ -5,7 +5,7 @@ A point is a variant (`framework.reporting.runs`: runs that differ only by seed)
 (`+tradeoff=NAME`) or, for runs outside the trade-off sweep, by its experiment; every number is the mean over its
 seeds. Written: one PNG per objective with that plane's Pareto front marked (maximise PSNR and fps, minimise the
 others), the same plots in TensorBoard, a Markdown table with the front over all five objectives first, a CSV, the
-best point for each budget a user names (`--budget fps>=60`) and the knobs that buy the most speed per dB lost.
+best point for each budget a user names (`'budgets=["fps>=60"]'`) and the knobs that buy the most speed per dB lost.
 """
 
 from __future__ import annotations
@@ -137,13 +137,13 @@ def parse_budget(text: str) -> Budget:
     m = re.fullmatch(r"\s*([a-z_]+)\s*(>=|<=)\s*([-+0-9.eE]+)\s*", text)
     if m is None or m.group(1) not in BUDGET_KEYS:
         raise ReportError(
-            f"--budget {text!r}: expected KEY>=NUMBER or KEY<=NUMBER with KEY one of "
+            f"budget {text!r}: expected KEY>=NUMBER or KEY<=NUMBER with KEY one of "
             f"{', '.join(BUDGET_KEYS)}, e.g. fps>=60 or model_mb<=10."
         )
     try:
         return Budget(m.group(1), m.group(2), float(m.group(3)))
     except ValueError:
-        raise ReportError(f"--budget {text!r}: {m.group(3)!r} is not a number; write e.g. train_min<=5.") from None
+        raise ReportError(f"budget {text!r}: {m.group(3)!r} is not a number; write e.g. train_min<=5.") from None
 
 
 def recommend(points: list[Point], budget: Budget) -> Point | None:
