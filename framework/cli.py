@@ -33,7 +33,7 @@ def did_you_mean(name: str, valid: list[str]) -> str:
 def composition_message(exc: BaseException) -> str:
     """One line for an error Hydra raised while composing the config."""
     from hydra.errors import MissingConfigException
-    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationError
 
     from framework.dataset_keys import old_key_hint
 
@@ -43,6 +43,8 @@ def composition_message(exc: BaseException) -> str:
         hint = did_you_mean(name, options) or "."
         return f"{group}={name}: no such option in group '{group}'{hint} Options: {', '.join(options)}"
     cause = exc.__cause__
+    if isinstance(cause, ValidationError) and cause.full_key:  # a value of the wrong type (framework.config_schema)
+        return f"{cause.full_key}: expected {expected_type(cause)}, got {_shown(getattr(cause, 'value', None))}"
     parent = getattr(cause, "parent_node", None)
     if isinstance(cause, ConfigAttributeError | ConfigKeyError) and cause.full_key and hasattr(parent, "keys"):
         key = str(cause.full_key)
@@ -64,6 +66,41 @@ def composition_message(exc: BaseException) -> str:
         lines += [line.strip() for line in str(cause).splitlines()[:1]]
     kept = [line for line in lines if line and not line.startswith(("Config search path", "provider="))]
     return " ".join(kept)
+
+
+_TYPE_WORDS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def expected_type(cause: Any) -> str:
+    """The type a typed config key takes, in words, from the schema dataclass (or typed list) OmegaConf names."""
+    import typing
+
+    kind: Any = None
+    owner, key = getattr(cause, "object_type", None), getattr(cause, "key", None)
+    if isinstance(key, str) and isinstance(owner, type):
+        try:
+            kind = typing.get_type_hints(owner).get(key)
+        except (NameError, TypeError):
+            kind = None
+    elif isinstance(key, int):  # an item of a typed list
+        kind = next(iter(typing.get_args(getattr(cause, "ref_type", None))), None)
+    args = typing.get_args(kind)
+    optional = type(None) in args
+    if optional:
+        kind = next(a for a in args if a is not type(None))
+    origin = typing.get_origin(kind)
+    if origin in (list, tuple):
+        inner = typing.get_args(kind)
+        word = f"a list of {_TYPE_WORDS.get(inner[0], 'values').split(' ', 1)[-1]}s" if inner else "a list"
+    elif origin is dict:
+        word = "a mapping (key: value)"
+    else:
+        word = _TYPE_WORDS.get(kind, getattr(kind, "__name__", "another type"))
+    return f"{word} or null" if optional else word
+
+
+def _shown(value: Any) -> str:
+    return "null" if value is None else repr(value)
 
 
 def hydra_main(config_name: str) -> Callable[[Callable[[Any], Any]], Callable[[], Any]]:

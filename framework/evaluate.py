@@ -171,8 +171,8 @@ def evaluate_from_config(cfg) -> Path:
     check_evaluate_config(cfg)
     module = load_module(cfg.ckpt)
     dm = datamodule_for(module, data_overrides(cfg))
-    splits = list(cfg.splits) if cfg.splits else list(module.cfg["eval"]["splits"])
-    metrics = list(cfg.metrics) if cfg.metrics else list(module.cfg["eval"]["metrics"])
+    splits = list(cfg.splits) if cfg.splits else list(module.settings.eval.splits)
+    metrics = list(cfg.metrics) if cfg.metrics else list(module.settings.eval.metrics)
     record_as = cfg.get("record_as")
     run_dir = Path(str(cfg.ckpt)).resolve().parent.parent  # <run>/checkpoints/<file>
     if record_as:

@@ -44,14 +44,6 @@ class Execution:
             kernels = "compiled" if torch.device(device).type == "cpu" else "torch"
         return cls(kernels)
 
-    @classmethod
-    def from_config(cls, node: object, device: torch.device | str) -> Execution:
-        """From an `execution:` config node ({kernels: ...}; None or a missing key: auto), resolved for `device`."""
-        kernels = "auto"
-        if node is not None:
-            kernels = str(node.get("kernels", "auto"))  # type: ignore[attr-defined]
-        return cls.resolve(kernels, device)
-
     def compiled(self, *tensors: Tensor) -> bool:
         """Whether the compiled kernels take these tensors: kernels compiled, every tensor a CPU float32 or float64
         one (the kernels read them as numpy views, no copy, no cast)."""

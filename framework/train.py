@@ -105,7 +105,7 @@ def write_train_stats(path: Path, fit_seconds: float, steps: int, num_gaussians:
 def resume_checkpoint(cfg: DictConfig) -> str | None:
     """The checkpoint to resume from, `ckpt=` (`ckpt_path=`, its older name, prints a note), checked before anything
     is built."""
-    ckpt, old = cfg.get("ckpt"), cfg.get("ckpt_path")
+    ckpt, old = cfg.ckpt, cfg.ckpt_path
     if old is not None:
         if ckpt is not None and str(ckpt) != str(old):
             raise SplatrigError(
@@ -153,8 +153,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     # float32 matrix products stay float32 on a GPU: "high" would let them round to TF32's 10-bit mantissa, which moves
     # the LBS blend's translations by ~1.5 mm (tools/emulate_tf32.py). Convolutions: framework.runtime.exact_float32.
     torch.set_float32_matmul_precision("highest")
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
 
     dm = FrameDataModule(
         functools.partial(build_split, cfg.data),
@@ -205,7 +205,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         callbacks.append(StepProgressBar())
     trainer = L.Trainer(
         max_steps=int(cfg.trainer.max_steps),
-        max_time=cfg.trainer.get("max_time"),
+        max_time=cfg.trainer.max_time,
         accelerator=str(cfg.trainer.accelerator),
         devices=1,
         precision=cfg.trainer.precision,
@@ -218,8 +218,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         enable_progress_bar=False,
         enable_model_summary=False,
         deterministic=False,
-        fast_dev_run=bool(cfg.trainer.get("fast_dev_run", False)),
-        limit_val_batches=cfg.trainer.get("limit_val_batches", 1.0),
+        fast_dev_run=cfg.trainer.fast_dev_run,
+        limit_val_batches=cfg.trainer.limit_val_batches,
         plugins=[AtomicCheckpointIO()],  # a kill during a save leaves the previous checkpoint intact
     )
     reset_peak_memory()
@@ -239,7 +239,7 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
         trainer.save_checkpoint(final, weights_only=False)
         print(f"[splatrig] blend weights baked into each Gaussian: {final} needs no weight MLP")
     result: dict[str, float] = {}
-    evaluating = cfg.eval.after_fit and not cfg.trainer.get("fast_dev_run", False)
+    evaluating = cfg.eval.after_fit and not cfg.trainer.fast_dev_run
     if evaluating:
         result = evaluate_module(
             module,
@@ -250,10 +250,8 @@ def run(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
             logger=logger,
             step=trainer.global_step,
         )
-    fps_frames = int(cfg.eval.get("fps_frames", 0)) if evaluating else 0
-    cost = run_cost(
-        module, dm, final, train_seconds, int(trainer.global_step), fps_frames, int(cfg.eval.get("fps_warmup", 3))
-    )
+    fps_frames = cfg.eval.fps_frames if evaluating else 0
+    cost = run_cost(module, dm, final, train_seconds, int(trainer.global_step), fps_frames, cfg.eval.fps_warmup)
     config_name, overrides = _hydra_job()
     record = write_run_record(
         out_dir,

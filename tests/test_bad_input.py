@@ -211,6 +211,10 @@ COMMAND_LINE_CASES = [
     Case(
         "key_unknown", "train", "`trainer.max_step=100`", ["trainer.max_step=100"], "; did you mean trainer.max_steps?"
     ),
+    # a value of the wrong type fails while composing (the types: framework/config_schema.py)
+    Case("value_not_int", "train", "`trainer.max_steps=abc`", ["trainer.max_steps=abc"], "expected an integer"),
+    Case("value_not_int_sh", "train", "`gaussians.sh_degree=1.5`", ["gaussians.sh_degree=1.5"], "expected an integer"),
+    Case("value_not_bool", "train", "`pose_refine.enabled=maybe`", ["pose_refine.enabled=maybe"], "true or false"),
     # the studio's counts follow the dataset-key rule (framework.dataset_keys): the old name says the new one
     Case(
         "key_renamed",

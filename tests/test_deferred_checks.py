@@ -116,6 +116,7 @@ def test_config_decides_per_run_and_says_when_it_cannot():
     from types import SimpleNamespace
 
     from framework.build import ConfigError
+    from framework.config_schema import Divergence
     from framework.lightning.divergence import DivergencePolicy
     from framework.lightning.module import SplatModule
 
@@ -123,7 +124,7 @@ def test_config_decides_per_run_and_says_when_it_cannot():
     unfused = torch.optim.Adam(params, lr=0.1, foreach=False)
 
     def decide(value, optimizer) -> bool:
-        run = SimpleNamespace(divergence=DivergencePolicy.from_config({"deferred": value}), _defers_checks=None)
+        run = SimpleNamespace(divergence=DivergencePolicy.from_config(Divergence(deferred=value)), _defers_checks=None)
         return SplatModule._deferred(run, optimizer)
 
     assert decide("auto", fused) is False and decide(True, fused) is True and decide(False, fused) is False
@@ -131,7 +132,7 @@ def test_config_decides_per_run_and_says_when_it_cannot():
     with pytest.raises(ConfigError, match=r"divergence.deferred=true: the optimizer does not run fused Adam"):
         decide(True, unfused)
     with pytest.raises(ValueError, match=r"divergence.deferred: expected true, false or auto, found 'maybe'"):
-        DivergencePolicy.from_config({"deferred": "maybe"})
+        DivergencePolicy.from_config(Divergence(deferred="maybe"))
 
 
 def test_training_end_reads_what_is_pending():

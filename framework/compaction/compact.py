@@ -32,6 +32,7 @@ from framework.compaction.pruning import (
 )
 from framework.compaction.refit import RefitResult, refit_gaussians
 from framework.compaction.render_check import RenderCheck
+from framework.config_schema import Train
 from framework.errors import SplatrigError
 from framework.evaluation.run_cost import distinct_frame_items, model_bytes, render_fps, timing_split
 from framework.lightning.data import collate_frames
@@ -62,14 +63,13 @@ def resolve_prune_tolerance(tolerance: float | str | None, refit_steps: int) -> 
     return None if tolerance is None else float(tolerance)
 
 
-def resolve_fold_tolerance(tolerance: float | str | None, run_cfg) -> tuple[float | None, str | None]:
+def resolve_fold_tolerance(tolerance: float | str | None, settings: Train) -> tuple[float | None, str | None]:
     """(tolerance, why F_a is kept whole or None). `"auto"`: `DEFAULT_FOLD_TOLERANCE`, or None (no fold) when the run
     was trained with `scene.fold_corrector: false` (`+scene=auto` sets it where the scene's appearance depends on
     the pose, `framework.scene.auto`); a number as given; None as None. A run from before the key folds."""
     if tolerance != "auto":
         return (None if tolerance is None else float(tolerance)), None
-    scene = run_cfg.get("scene") or {}
-    if scene.get("fold_corrector", True):
+    if settings.scene.fold_corrector:
         return DEFAULT_FOLD_TOLERANCE, None
     return None, (
         "the run's scene.fold_corrector is false (`+scene=auto` measured pose-dependent appearance)"
@@ -352,7 +352,7 @@ def prune_module(
     degree = min(negligible_sh_degree(params.params["shN"], sh_tolerance, floor=floor), current)
     if degree < current:
         drop_sh_bands(params, degree)
-        module.cfg["gaussians"]["sh_degree"] = degree
+        module.set_sh_degree(degree)
         if check is not None:
             check.sh_degree = degree
     return removed + faint, faint, rms
@@ -437,7 +437,7 @@ def prune_checkpoint(
         raise SplatrigError(f"out={out}: the compact model must not overwrite its source checkpoint; choose another.")
     device = device or default_device()
     module = load_module(ckpt_path, device)
-    fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.cfg)
+    fold_tolerance, corrector_kept = resolve_fold_tolerance(fold_tolerance, module.settings)
     dm = datamodule_for(module)
     source = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     before = (

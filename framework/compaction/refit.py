@@ -52,7 +52,7 @@ def refit_gaussians(module, datamodule, steps: int, seed: int = 0, progress: boo
         params[k].requires_grad_(True)
     groups = [{"params": [params[k]], "lr": 0.0, "name": k} for k in keys]
     optimizer = torch.optim.Adam(groups, eps=1e-15)
-    module._set_learning_rates(optimizer, int(module.cfg["trainer"]["max_steps"]))  # the schedule's end
+    module._set_learning_rates(optimizer, module.settings.trainer.max_steps)  # the schedule's end
     dataset = datamodule.train_set
     generator = torch.Generator().manual_seed(seed)
     device = params["means"].device

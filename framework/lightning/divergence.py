@@ -22,11 +22,11 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
 
+from framework.config_schema import Divergence
 from framework.errors import SplatrigError
 
 ACTIONS = ("stop", "rollback")
@@ -38,20 +38,17 @@ class TrainingDiverged(SplatrigError):
 
 @dataclass(frozen=True)
 class DivergencePolicy:
-    action: str = "stop"
-    lr_factor: float = 0.5
-    max_rollbacks: int = 3
-    deferred: bool | str = "auto"  # read the probe after the step (framework.lightning.deferred_checks); auto: on a GPU
+    action: str
+    lr_factor: float
+    max_rollbacks: int
+    deferred: bool | str  # read the probe after the step (framework.lightning.deferred_checks); auto: on a GPU
 
     @classmethod
-    def from_config(cls, node: Mapping[str, Any] | None) -> DivergencePolicy:
-        """From the `divergence` config node; bad values raise ValueError naming the key."""
-        node = dict(node or {})
+    def from_config(cls, node: Divergence) -> DivergencePolicy:
+        """From the typed `divergence` config node (its defaults: framework.config_schema.Divergence); bad values
+        raise ValueError naming the key."""
         policy = cls(
-            action=str(node.get("action", cls.action)),
-            lr_factor=float(node.get("lr_factor", cls.lr_factor)),
-            max_rollbacks=int(node.get("max_rollbacks", cls.max_rollbacks)),
-            deferred=node.get("deferred", cls.deferred),
+            action=node.action, lr_factor=node.lr_factor, max_rollbacks=node.max_rollbacks, deferred=node.deferred
         )
         if not (isinstance(policy.deferred, bool) or policy.deferred == "auto"):
             raise ValueError(f"divergence.deferred: expected true, false or auto, found '{policy.deferred}'.")

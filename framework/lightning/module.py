@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from framework.build import ConfigError, build_component, node_kwargs, with_fitted_betas
+from framework.config_schema import Train, training_settings
 from framework.execution import Execution
 from framework.guards import PSNR_MSE_FLOOR
 from framework.lightning.deferred_checks import DeferredChecks, defers
@@ -40,24 +41,25 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
     return -10 * torch.log10(mse)
 
 
-def training_device(cfg: dict[str, Any]) -> str:
+def training_device(settings: Train) -> str:
     """The device a run's config trains on: `trainer.accelerator`, where auto (or gpu) is the GPU when there is one,
     as Lightning picks it."""
-    accelerator = str((cfg.get("trainer") or {}).get("accelerator", "auto"))
-    return "cpu" if accelerator == "cpu" else default_device()
+    return "cpu" if settings.trainer.accelerator == "cpu" else default_device()
 
 
 class SplatModule(L.LightningModule):
     def __init__(self, cfg: dict[str, Any], data_info: dict[str, Any], device: str | None = None) -> None:
         """`device`: where the model will run (default: where its config trains), which `execution.kernels: auto`
-        is resolved against."""
+        is resolved against. `cfg` (a plain container, stored in checkpoints) is read through `self.settings`, its
+        typed form (framework.config_schema: a key an older checkpoint lacks reads as its default)."""
         super().__init__()
         self.save_hyperparameters({"cfg": cfg, "data_info": data_info})
         self.automatic_optimization = False
         self.cfg = cfg
+        self.settings = settings = training_settings(cfg)
         self.data_info = data_info
         try:  # how every component runs (torch, or the compiled CPU kernels): one choice, handed to each
-            self.execution = Execution.from_config(cfg.get("execution"), device or training_device(cfg))
+            self.execution = Execution.resolve(settings.execution.kernels, device or training_device(settings))
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         bounds = torch.tensor(data_info["bounds"], dtype=torch.float32)  # [2, 3]
@@ -70,7 +72,7 @@ class SplatModule(L.LightningModule):
                 f"{data_info['num_joints']}. Select the body the data was made with (dataset body: "
                 f"'{data_info.get('body_name')}'), e.g. `body={data_info.get('body_name')}`."
             )
-        frozen = list((cfg.get("scene") or {}).get("frozen_joints") or [])
+        frozen = list(settings.scene.frozen_joints)
         if body is not None and frozen:  # joints still over the training frames leave the pose input and LBS sum
             from framework.model.frozen_body import FrozenJointsBody
 
@@ -85,10 +87,9 @@ class SplatModule(L.LightningModule):
             deformer.bind(body, canonical_bounds)
         else:
             deformer.bind(None, bounds)
-        refine_cfg = cfg.get("pose_refine", {}) or {}
         refiner = None
         if body is not None:
-            refiner = PoseRefiner(int(data_info["num_frames_total"]), body.num_joints, bool(refine_cfg.get("enabled")))
+            refiner = PoseRefiner(int(data_info["num_frames_total"]), body.num_joints, settings.pose_refine.enabled)
         self.avatar = Avatar(
             GaussianParams(gaussians),
             rasterizer,
@@ -96,7 +97,7 @@ class SplatModule(L.LightningModule):
             deformer,
             body,
             refiner,
-            background=tuple(cfg.get("background", (0.0, 0.0, 0.0))),
+            background=tuple(settings.background),
             execution=self.execution,
         )
         self.loss_fn = CompositeLoss(cfg["loss"]["terms"], self.execution)
@@ -112,7 +113,7 @@ class SplatModule(L.LightningModule):
         self._last_train_psnr: Tensor | None = None
         self._loaded_steps = 0
         try:
-            self.divergence = DivergencePolicy.from_config(cfg.get("divergence"))
+            self.divergence = DivergencePolicy.from_config(settings.divergence)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         self.lr_scale = 1.0  # lowered by every divergence rollback; saved in checkpoints
@@ -124,26 +125,13 @@ class SplatModule(L.LightningModule):
     def _initial_gaussians(self, body, bounds: Tensor) -> Gaussians:
         from framework.model import gaussian_init
 
-        g = self.cfg["gaussians"]
-        seed = int(self.cfg.get("seed", 0))
+        g, seed = self.settings.gaussians, self.settings.seed
         if body is not None:
-            return gaussian_init.from_body_surface(
-                body,
-                num=int(g["num"]),
-                sh_degree=int(g["sh_degree"]),
-                seed=seed,
-                opacity=float(g.get("opacity", 0.1)),
-            )
-        return gaussian_init.random_in_box(
-            bounds,
-            num=int(g["num"]),
-            sh_degree=int(g["sh_degree"]),
-            seed=seed,
-            opacity=float(g.get("opacity", 0.1)),
-        )
+            return gaussian_init.from_body_surface(body, num=g.num, sh_degree=g.sh_degree, seed=seed, opacity=g.opacity)
+        return gaussian_init.random_in_box(bounds, num=g.num, sh_degree=g.sh_degree, seed=seed, opacity=g.opacity)
 
     def configure_optimizers(self):
-        lr = self.cfg["optim"]["lr"]
+        lr = vars(self.settings.optim.lr)
         params = self.avatar.gaussians.params
         groups = []
         for key in GAUSSIAN_KEYS:
@@ -166,16 +154,19 @@ class SplatModule(L.LightningModule):
 
     # ------------------------------------------------------------------------------------------------- schedules
     def sh_degree(self, step: int) -> int:
-        g = self.cfg["gaussians"]
-        every = int(g.get("sh_increase_every", 1000))
-        return min(int(g["sh_degree"]), step // max(every, 1))
+        g = self.settings.gaussians
+        return min(g.sh_degree, step // max(g.sh_increase_every, 1))
+
+    def set_sh_degree(self, degree: int) -> None:
+        """Render up to this SH degree from now on (compaction dropped the bands above it): config and settings."""
+        self.cfg["gaussians"]["sh_degree"] = self.settings.gaussians.sh_degree = int(degree)
 
     def _set_learning_rates(self, optimizer: torch.optim.Optimizer, step: int) -> None:
         """3DGS: the position learning rate decays exponentially to `means_final_ratio` of its start; every rate is
         scaled by `lr_scale` (1 unless a divergence rollback lowered it)."""
-        lr = self.cfg["optim"]["lr"]
-        total = max(int(self.cfg["trainer"]["max_steps"]), 1)
-        ratio = float(self.cfg["optim"].get("means_final_ratio", 0.01))
+        lr = vars(self.settings.optim.lr)
+        total = max(self.settings.trainer.max_steps, 1)
+        ratio = self.settings.optim.means_final_ratio
         t = min(step / total, 1.0)
         for group in optimizer.param_groups:
             if group["name"] == "means":
@@ -201,7 +192,7 @@ class SplatModule(L.LightningModule):
         self._set_learning_rates(optimizer, step)
         out = self.render_batch(batch, step)
         # the small work around the render and the backward on `small_work_threads` CPU threads (framework.runtime)
-        small_work = functools.partial(cpu_threads, self.cfg.get("small_work_threads"), self.device)
+        small_work = functools.partial(cpu_threads, self.settings.small_work_threads, self.device)
         with small_work():
             total, terms = self.loss_fn(out.render, batch, out.aux)
             params = self.avatar.gaussians.params
@@ -312,8 +303,8 @@ class SplatModule(L.LightningModule):
     def _checkpoint_due(self, step: int) -> bool:
         """Whether a checkpoint is saved after the update that brings the count to `step` (train.py's periodic
         last.ckpt and the end of the run; no checkpoint is saved on validation)."""
-        every = int(self.cfg["callbacks"]["checkpoint_every"])
-        return (every > 0 and step % every == 0) or step >= int(self.cfg["trainer"]["max_steps"])
+        every = self.settings.callbacks.checkpoint_every
+        return (every > 0 and step % every == 0) or step >= self.settings.trainer.max_steps
 
     def _deferred(self, optimizer: torch.optim.Optimizer) -> bool:
         """Whether this run's divergence probes are read after the step instead of before the update
@@ -356,7 +347,7 @@ class SplatModule(L.LightningModule):
         self.load_state_dict(ckpt["state_dict"])
         optimizer.load_state_dict(ckpt["optimizer_states"][0])
         self.rollbacks, self.lr_scale = rollbacks, lr_scale
-        stage1 = int((self.cfg.get("stages") or {}).get("stage1_steps", 0))
+        stage1 = self.settings.stages.stage1_steps
         if 0 < stage1 and int(ckpt.get("global_step", 0)) < stage1 <= self.global_step:
             self.begin_stage2(stage1)  # the step count goes on: stage 2 began after that checkpoint was written
         print(

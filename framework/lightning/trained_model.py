@@ -46,7 +46,7 @@ def load_module(ckpt: str | Path, map_location: str | None = None, kernels: str 
             f"the {device.type} with numba (the same function)"
         )
     if kernels is not None:  # e.g. torch: a GPU's code on this CPU (tools' --accelerator-path)
-        built = {**built, "execution": {**(built.get("execution") or {}), "kernels": kernels}}
+        built = {**built, "execution": {"kernels": kernels}}
     module = SplatModule(built, hparams["data_info"], device=str(device))
     if built is not cfg:
         module.cfg = module.hparams["cfg"] = cfg
@@ -90,7 +90,7 @@ def datamodule_for(module, data_overrides: dict | None = None):
 
     data = dict(module.cfg["data"])
     data.update({k: v for k, v in (data_overrides or {}).items() if v is not None})
-    return FrameDataModule(functools.partial(build_split, data), val_split=module.cfg["eval"]["val_split"])
+    return FrameDataModule(functools.partial(build_split, data), val_split=module.settings.eval.val_split)
 
 
 def interleaved_fps(

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from framework.scene.auto import Choice, apply_choices, choices_table, choose, override_keys
 from framework.scene.survey import SceneSurvey, cached_survey, survey_body
@@ -72,23 +72,23 @@ def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bo
     rotations frozen joints are held at (scene.frozen_joints, chosen or given)."""
     from framework.build import build_component
 
-    scene = cfg.get("scene") or OmegaConf.create({})
+    scene = cfg.scene
     setup = SceneSetup()
     body = None
-    if scene.get("survey") or scene.get("auto"):
+    if scene.survey or scene.auto:
         body = survey_body(cfg.body, train_set)
         survey, path, cached = cached_survey(
             train_set,
             body,
-            max_frames=int(scene.get("max_frames", 12)),
-            blur_px=float(scene.get("blur_px", 1.0)),
-            moving_deg=float(scene.get("moving_deg", 5.0)),
+            max_frames=scene.max_frames,
+            blur_px=scene.blur_px,
+            moving_deg=scene.moving_deg,
             progress=progress,
         )
         setup.survey, setup.survey_path = survey, path
         print(f"[splatrig] {survey.report()}", file=sys.stderr)
         print(f"[splatrig]   survey {'read from' if cached else 'written to'} {path}", file=sys.stderr)
-    if scene.get("auto"):
+    if scene.auto:
         if setup.survey is None or body is None:
             raise AssertionError("scene.auto needs the survey")
         root = body.joint_names[int(body.parents.tolist().index(-1))]
@@ -96,7 +96,7 @@ def prepare_scene(cfg: DictConfig, train_set, overrides: list[str], progress: bo
         setup.choices = apply_choices(cfg, choices, override_keys(overrides))
         for c in setup.choices:
             print(f"[splatrig] scene=auto: {c.line()}", file=sys.stderr)
-    frozen = list(cfg.scene.frozen_joints or []) if "scene" in cfg else []
+    frozen = list(scene.frozen_joints)
     poses = train_set.poses()
     if frozen and poses is not None:
         from framework.model.frozen_body import frozen_constants
