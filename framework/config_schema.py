@@ -25,7 +25,7 @@ from omegaconf import MISSING, OmegaConf
 
 
 @dataclass
-class Execution:
+class ExecutionConfig:
     kernels: str = "auto"  #: auto (compiled CPU kernels on a CPU, torch elsewhere) | compiled | torch
 
 
@@ -179,7 +179,7 @@ class Train:
     seed: int = 0  #: random seed of initialisation, sampling and densification
     threads: Optional[int] = None  #: torch CPU threads; null keeps torch's default
     small_work_threads: Optional[int] = 1  #: threads for a CPU step's losses and bookkeeping (null: all)
-    execution: Execution = field(default_factory=Execution)
+    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     metric: str = "novel_view/psnr"  #: returned to Hydra sweepers
     ckpt: Optional[str] = None  #: resume from this checkpoint
     ckpt_path: Optional[str] = None  #: the older name of ckpt
