@@ -172,10 +172,12 @@ def component_table() -> list[tuple[str, str, str, str]]:
     return rows
 
 
-def format_table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> str:
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=False)]
+def format_table(rows: list[tuple[str, ...]], header: tuple[str, ...], pad: bool = True) -> str:
+    """A Markdown table; `pad=False` leaves the columns unaligned (the same table, for files that are read rendered
+    and would otherwise be mostly spaces)."""
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=False)] if pad else [0] * len(header)
     line = "| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |"
-    sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    sep = "|" + "|".join("-" * (max(w, 1) + 2) for w in widths) + "|"
     body = ["| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)) + " |" for r in rows]
     return "\n".join([line, sep, *body])
 

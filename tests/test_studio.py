@@ -244,7 +244,7 @@ def test_the_command_renders_the_sequence_training_reads(tmp_path, monkeypatch):
     small = ["data.body=procedural", "data.resolution=24", "data.num_views=2", "data.num_frames=4", "data.workers=1"]
     with initialize_config_module(config_module="framework.conf", version_base="1.3"):
         cfg = compose(config_name="studio", overrides=small)
-    root = generate_from_config(OmegaConf.to_container(cfg.data, resolve=True))
+    root, _ = generate_from_config(OmegaConf.to_container(cfg.data, resolve=True))
     dataset = build_split(cfg.data, "train")
     assert Path(dataset.seq.root).resolve() == root.resolve()
     assert root.parent == tmp_path / "data" / "synthetic_studio"

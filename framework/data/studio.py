@@ -460,19 +460,13 @@ def disk_size(path: Path) -> int:
     return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
 
 
-#: keys of a studio dataset's config that say how it is read or split, not what is rendered
-_READER_KEYS = ("name", "root", "split", "workers", "test_view_every", "test_view_offset", "params_dir", "vertices_dir")
-
-
-def generate_from_config(data: dict, force: bool = False) -> Path:
-    """Render (or find) the studio a `data=synthetic_studio*` config describes; returns its folder."""
-    from framework.data.options import SequenceOptions
-    from framework.dataset_keys import split_config
-
-    rendered = {k: v for k, v in data.items() if k not in _READER_KEYS}
-    studio, _ = split_config(rendered, StudioSettings, SequenceOptions, dataset=str(data.get("name", "studio")))
+def generate_from_config(data: dict, force: bool = False) -> tuple[Path, StudioSettings]:
+    """Render (or find) the studio a `data=synthetic_studio*` config describes: its folder and settings. The config's
+    other keys say how the sequence is read, not what is rendered; composing it already rejected unknown ones."""
+    names = {f.name for f in fields(StudioSettings)}
+    settings = StudioSettings(**{k: v for k, v in data.items() if k in names})
     workers = int(data.get("workers") or min(2, os.cpu_count() or 1))
-    return generate(StudioSettings(**studio), data.get("root"), workers=workers, force=force)
+    return generate(settings, data.get("root"), workers=workers, force=force), settings
 
 
 def main() -> int:
@@ -490,15 +484,13 @@ def main() -> int:
                     f"data={data.get('name')}: the studio renders synthetic_studio* datasets (data=synthetic_studio)"
                 )
             t = time.perf_counter()
-            root = generate_from_config(data, force=bool(cfg.force))
+            root, s = generate_from_config(data, force=bool(cfg.force))
             dt = time.perf_counter() - t
         meta = json.loads((root / "studio.json").read_text())
-        s = meta["settings"] if "settings" in meta else {}
         print(f"sequence: {root}")
         print(
-            f"frames {s.get('num_frames', s.get('frames', '?'))} x views {s.get('num_views', s.get('views', '?'))} at "
-            f"{s.get('resolution', '?')}px; this call {dt:.1f} s (rendered in {meta['render_seconds']} s when "
-            f"generated); disk {disk_size(root) / 2**20:.1f} MiB"
+            f"frames {s.num_frames} x views {s.num_views} at {s.resolution}px; this call {dt:.1f} s "
+            f"(rendered in {meta['render_seconds']} s when generated); disk {disk_size(root) / 2**20:.1f} MiB"
         )
         segs = ", ".join(f"{g['name']} {g['start']}-{g['end'] - 1} [{g['split']}]" for g in meta["segments"])
         print(f"train frames {len(meta['train_frames'])}, novel-pose frames {len(meta['novel_pose_frames'])} ({segs})")
