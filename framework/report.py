@@ -4,9 +4,10 @@ directories (a sweep run in parts: `runs=[DIR1,DIR2]`), from the results.json ev
 table4 (default): the paper's ablation table with seed statistics and verdicts, as Markdown, CSV and PNG, plus a
 TensorBoard log; see `framework.reporting.table4`.
 
-tradeoff: novel-pose PSNR against render fps, training time, peak memory and model size (sweeps/tradeoff.yaml):
-Pareto plots, the table sorted by the front, the best point per budget (`'budgets=["fps>=60",...]'`) and the speed
-bought per dB lost; see `framework.reporting.tradeoff`.
+tradeoff: novel-pose PSNR against viewer fps (compiled CPU path), training time, peak memory and model size
+(sweeps/tradeoff.yaml): Pareto plots with seed error bars, the table sorted by the front, the best measured point per
+budget with the config to paste (`'budgets=["fps>=60",...]'`) and the speed bought per dB lost; see
+`framework.reporting.tradeoff`.
 """
 
 from __future__ import annotations

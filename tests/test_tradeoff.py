@@ -22,7 +22,25 @@ from framework.evaluation.run_record import metrics_from_summary, write_run_reco
 from framework.report import report
 from framework.reporting.pareto import pareto_front
 from framework.reporting.runs import ReportError, find_runs
-from framework.reporting.tradeoff import build_points, knob_gains, parse_budget, recommend
+from framework.reporting.tradeoff import (
+    ALL,
+    DEFAULT_BUDGETS,
+    NONE_MEETS,
+    OBJECTIVES,
+    PRUNE_STEP,
+    build_points,
+    conf_dir,
+    figure,
+    front_footnote,
+    knob_gains,
+    parse_budget,
+    paste_steps,
+    points_markdown,
+    presets_by_point,
+    psnr_flips,
+    recommend,
+    recommendations,
+)
 from tests.helpers.config_keys import flat
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -72,7 +90,7 @@ def test_pareto_front_ties_and_missing_values() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ synthetic runs
-# point -> (novel-pose PSNR, render fps, training seconds, peak RSS MiB, model bytes)
+# point -> (novel-pose PSNR, viewer fps (compiled path), training seconds, peak RSS MiB, model bytes)
 POINTS = {
     "baseline": (30.0, 10.0, 600.0, 2000.0, 8_000_000),
     "sh0": (29.5, 20.0, 300.0, 1500.0, 2_000_000),  # 1 doubling of each: 2 doublings for 0.5 dB -> 4 per dB
@@ -81,14 +99,31 @@ POINTS = {
     "corrector_wide": (30.5, 5.0, 1200.0, 2500.0, 16_000_000),  # slower and better: no speed gain
     "preset_realtime": (27.0, 80.0, 150.0, 1000.0, 1_000_000),  # presets are not single knobs
 }
+TORCH_SLOWDOWN = 4.0  # the fake torch_ref path renders this many times slower than the compiled one
+RENDER_FPS = 999.0  # the in-training render_fps the fake runs report: no longer an objective, never in the report
 
 
-def _write_point(root: Path, name: str, seed: int, shift: float = 0.0) -> None:
-    psnr, fps, seconds, rss, size = POINTS[name]
-    run = root / f"{name}_seed{seed}"
-    summary = {"novel_pose/psnr": psnr + shift, "novel_view/psnr": psnr + 1}
+def _write_run(
+    root: Path,
+    name: str,
+    seed: int,
+    psnr: float,
+    fps: float | None,
+    seconds: float = 600.0,
+    rss: float = 2000.0,
+    size: int = 8_000_000,
+) -> None:
+    """One fake results.json; fps None: a run measured before viewer_fps existed (no such field)."""
+    summary = {"novel_pose/psnr": psnr, "novel_view/psnr": psnr + 1}
+    viewer = {}
+    if fps is not None:
+        paths = {
+            "compiled": {"novel_pose": fps, "novel_view": 2 * fps},
+            "torch": {"novel_pose": fps / TORCH_SLOWDOWN, "novel_view": fps / 2},
+        }
+        viewer["viewer_fps"] = {"resolution": 512, "device": "cpu", "warmup": 3, "frames": 10, "paths": paths}
     write_run_record(
-        run,
+        root / f"{name}_seed{seed}",
         experiment=f"tradeoff_{name}",
         config_name="tradeoff",
         overrides=[
@@ -110,8 +145,8 @@ def _write_point(root: Path, name: str, seed: int, shift: float = 0.0) -> None:
         cuda_peak_mib=None,
         seconds_per_step=seconds / 1000,
         render_fps={
-            "novel_pose": fps,
-            "novel_view": 3 * fps,
+            "novel_pose": RENDER_FPS,
+            "novel_view": RENDER_FPS,
             "split": "novel_pose",
             "frames": 20,
             "warmup": 3,
@@ -121,7 +156,13 @@ def _write_point(root: Path, name: str, seed: int, shift: float = 0.0) -> None:
         checkpoint_bytes=3 * size,
         checkpoint="final.ckpt",
         metrics=metrics_from_summary(summary),
+        **viewer,
     )
+
+
+def _write_point(root: Path, name: str, seed: int, shift: float = 0.0) -> None:
+    psnr, fps, seconds, rss, size = POINTS[name]
+    _write_run(root, name, seed, psnr + shift, fps, seconds, rss, size)
 
 
 @pytest.fixture()
@@ -178,11 +219,13 @@ def test_speed_per_db_ranks_the_knobs(sweep: Path) -> None:
 def test_report_end_to_end(sweep: Path, capsys) -> None:
     out = sweep / "report"
     written = report([sweep / "part1", sweep / "part2"], kind="tradeoff", out=out, budgets=["fps>=20", "model_mb<=0.5"])
-    assert {p.name for p in written} >= {"tradeoff.md", "tradeoff.csv"}
+    assert {p.name for p in written} >= {"tradeoff.md", "tradeoff.csv", "recommendations.csv"}
     for name in (
         "tradeoff.md",
         "tradeoff.csv",
+        "recommendations.csv",
         "tradeoff_fps.png",
+        "tradeoff_fps_torch.png",
         "tradeoff_train_time.png",
         "tradeoff_memory.png",
         "tradeoff_model_size.png",
@@ -190,13 +233,202 @@ def test_report_end_to_end(sweep: Path, capsys) -> None:
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     assert any((out / "tb").rglob("events.out.tfevents.*"))
     markdown = (out / "tradeoff.md").read_text()
-    assert "`fps>=20`: **sh0**" in markdown and "`model_mb<=0.5`: none meets it" in markdown
     assert markdown == capsys.readouterr().out.rstrip("\n") + "\n"
+    # the caption says how fps was measured and how many seeds; the in-training render_fps is nowhere
+    assert "at 512² on cpu (3 warm-up, 10 timed frames), from viewer_fps" in markdown
+    assert "2 seeds for 6 points" in markdown and f"{RENDER_FPS:.1f}" not in markdown
     rows = list(csv.DictReader(io.StringIO((out / "tradeoff.csv").read_text())))
     fronts = [int(r["on_front"]) for r in rows]
     assert fronts == sorted(fronts, reverse=True) and fronts.count(0) == 2
-    table_order = [line.split("|")[1].strip() for line in markdown.splitlines() if line.startswith("| ")][1:7]
-    assert table_order == [r["point"] for r in rows]
+    lines = [line for line in markdown.splitlines() if line.startswith("| ")]
+    assert [c.strip() for c in lines[0].split("|")[1:-1]] == [
+        "point",
+        "seeds",
+        "front",
+        "novel-pose PSNR",
+        "fps 512² compiled",
+        "fps 512² torch_ref",
+        "train min",
+        "peak MiB",
+        "model MB",
+        "Gaussians",
+    ]
+    table = {c[0]: c for c in ([x.strip() for x in line.split("|")[1:-1]] for line in lines[1:7])}
+    assert list(table) == [r["point"] for r in rows]
+    # seeds at +-0.1 dB: sample std sqrt((0.1^2 + 0.1^2) / (2 - 1)) = 0.14; fps_torch = fps / TORCH_SLOWDOWN
+    assert table["sh0"][2:6] == ["yes", "29.50 ± 0.14", "20.0", "5.0"]
+    assert float(rows[[r["point"] for r in rows].index("sh0")]["psnr_std"]) == pytest.approx(math.sqrt(0.02))
+    # the recommendations: a section of the Markdown and a CSV, one row per budget
+    section = markdown.split("## Recommendations by budget")[1].split("## Speed per dB")[0]
+    recs = [[x.strip() for x in line.split("|")[1:-1]] for line in section.splitlines() if line.startswith("| ")]
+    assert recs[0] == [
+        "budget",
+        "point",
+        "config to paste",
+        "novel-pose PSNR",
+        "Δ dB vs baseline",
+        "train min",
+        "fps 512² compiled",
+        "fps 512² torch_ref",
+        "seeds",
+    ]
+    assert recs[1] == [
+        "`fps>=20`",
+        "sh0",
+        "`+tradeoff=sh0`",
+        "29.50 ± 0.14",
+        "-0.50 ± 0.14",
+        "5.00",
+        "20.0",
+        "5.0",
+        "0,1",
+    ]
+    assert recs[2][:2] == ["`model_mb<=0.5`", NONE_MEETS]
+    csv_recs = list(csv.DictReader(io.StringIO((out / "recommendations.csv").read_text())))
+    assert [(r["budget"], r["point"], r["config"]) for r in csv_recs] == [
+        ("fps>=20", "sh0", "+tradeoff=sh0"),
+        ("model_mb<=0.5", NONE_MEETS, ""),
+    ]
+    assert float(csv_recs[0]["delta_sigma"]) == pytest.approx(math.sqrt(0.02))
+
+
+def test_default_budgets(sweep: Path) -> None:
+    """Three training-time and three fps budgets; a user's budgets= replace them (test_report_end_to_end)."""
+    assert DEFAULT_BUDGETS == ("train_min<=2", "train_min<=5", "train_min<=10", "fps>=30", "fps>=60", "fps>=120")
+    points = build_points(find_runs([sweep]))
+    recs = recommendations(points, [parse_budget(b) for b in DEFAULT_BUDGETS], {})
+    # train 2.5 min (preset_realtime) misses 2; fdw_off 30.0 dB in 5 min; fps: only the preset (80) reaches 30 and 60
+    picked = [None if r.point is None else r.point.label for r in recs]
+    assert picked == [None, "fdw_off", "fdw_off", "preset_realtime", "preset_realtime", None]  # 30.0 dB tie: by name
+
+
+def test_seed_std_and_error_bars_are_the_sample_std(tmp_path: Path) -> None:
+    for seed, (psnr, fps) in enumerate([(29.0, 50.0), (30.0, 60.0), (32.0, 80.0)]):
+        _write_run(tmp_path, "sh0", seed, psnr, fps)
+    _write_run(tmp_path, "baseline", 0, 31.0, 10.0)  # one seed: its std is unknown and its bars are not drawn
+    by = {p.label: p for p in build_points(find_runs([tmp_path]))}
+    sh0 = by["sh0"]
+    # closed form: mean 91/3; sample std sqrt(sum (x - mean)^2 / (n - 1))
+    psnr_std = math.sqrt(((29 - 91 / 3) ** 2 + (30 - 91 / 3) ** 2 + (32 - 91 / 3) ** 2) / 2)
+    fps_std = math.sqrt(((50 - 190 / 3) ** 2 + (60 - 190 / 3) ** 2 + (80 - 190 / 3) ** 2) / 2)
+    assert sh0.psnr == pytest.approx(91 / 3) and sh0.std("psnr") == pytest.approx(psnr_std)
+    assert sh0.fps == pytest.approx(190 / 3) and sh0.std("fps") == pytest.approx(fps_std)
+    assert sh0.std("fps_torch") == pytest.approx(fps_std / TORCH_SLOWDOWN)
+    assert math.isnan(by["baseline"].std("psnr"))
+    assert f"{91 / 3:.2f} ± {psnr_std:.2f}" in points_markdown([sh0], ("a", "b"))
+
+    import matplotlib.pyplot as plt
+    from matplotlib.container import ErrorbarContainer
+
+    points = [by["baseline"], sh0]
+    fig = figure(points, OBJECTIVES[0])
+    (bars,) = [c for c in fig.axes[0].containers if isinstance(c, ErrorbarContainer)]
+    xbars, ybars = bars.lines[2]  # horizontal (xerr) then vertical (yerr) bars, one segment per point
+    half_widths = [abs(seg[1][0] - seg[0][0]) / 2 for seg in xbars.get_segments()]
+    half_heights = [abs(seg[1][1] - seg[0][1]) / 2 for seg in ybars.get_segments()]
+    plt.close(fig)
+    assert half_widths == pytest.approx([0.0, fps_std]) and half_heights == pytest.approx([0.0, psnr_std])
+
+
+def _write_unstable(root: Path) -> None:
+    """c is on seed 0's (PSNR, fps) front but under b on seed 1, and on the front of the means; d has seed 1 only.
+    Every other cost is equal, so the five-objective front is the (PSNR, fps) front."""
+    runs = {
+        "a": [(30.0, 10.0), (30.0, 10.0)],
+        "b": [(28.0, 50.0), (28.0, 50.0)],
+        "c": [(29.5, 30.0), (27.5, 30.0)],  # mean (28.5, 30): above b's PSNR, so on the mean front
+    }
+    for name, seeds in runs.items():
+        for seed, (psnr, fps) in enumerate(seeds):
+            _write_run(root, name, seed, psnr, fps)
+    _write_run(root, "d", 1, 27.0, 60.0)
+
+
+def test_front_member_on_some_seeds_only_is_marked(tmp_path: Path) -> None:
+    _write_unstable(tmp_path)
+    points = build_points(find_runs([tmp_path]))
+    by = {p.label: p for p in points}
+    assert by["c"].seed_front["fps"] == {0: True, 1: False} and by["c"].front["fps"]
+    assert by["c"].seed_unstable["fps"] and by["c"].seed_unstable[ALL]
+    assert not any(by[n].seed_unstable[ALL] for n in "abd")
+    assert by["d"].seed_front[ALL] == {1: True}  # left out of seed 0's front, not counted as off it
+    table = {
+        c[0]: c[2]
+        for c in (
+            [x.strip() for x in line.split("|")[1:-1]] for line in points_markdown(points, ("x", "y")).splitlines()[2:]
+        )
+    }
+    assert table == {"a": "yes", "b": "yes", "c": "yes*", "d": "yes"}
+    # along the fps front a (10) - c (30) - b (50) - d (60): c above b on seed 0, below on seed 1
+    assert psnr_flips(points, "fps") == [("c", "b")]
+    assert "fps: c / b" in front_footnote(points) and "yes* = not on every seed's front" in front_footnote(points)
+
+    import matplotlib.pyplot as plt
+
+    fig = figure(points, OBJECTIVES[0])
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    hollow = [c for c in fig.axes[0].collections if c.get_label() == "front member on some seeds only"]
+    plt.close(fig)
+    assert legend == ["Pareto front", "front member on some seeds only"]
+    assert len(hollow) == 1 and hollow[0].get_offsets().tolist() == [[30.0, 28.5]]
+    assert hollow[0].get_facecolors().size == 0  # hollow: no face
+
+
+def test_recommendation_picks_the_best_psnr_meeting_the_budget_with_the_delta_noise(sweep: Path) -> None:
+    _write_point(sweep / "part3", "sh0", 2, shift=0.4)  # sh0 seeds: 29.6, 29.4, 29.9
+    points = build_points(find_runs([sweep]))
+    (rec,) = recommendations(points, [parse_budget("fps>=20")], {})
+    assert rec.point.label == "sh0"  # 29.63 dB beats gaussians_half (29.0) and preset_realtime (27.0), all >= 20 fps
+    mean = (29.6 + 29.4 + 29.9) / 3
+    var_p = ((29.6 - mean) ** 2 + (29.4 - mean) ** 2 + (29.9 - mean) ** 2) / 2
+    var_b = (0.1**2 + 0.1**2) / 1  # baseline: 30.1 and 29.9
+    assert rec.delta.delta == pytest.approx(mean - 30.0)
+    assert rec.delta.sigma == pytest.approx(math.sqrt(var_p / 3 + var_b / 2))
+    assert rec.paste == ("+tradeoff=sh0",)
+    (none,) = recommendations(points, [parse_budget("train_min<=2")], {})
+    assert none.point is None and none.paste == ()
+
+
+def test_paste_strings_for_compacted_points_and_presets(tmp_path: Path) -> None:
+    for name in ("sh0", "sh1", "scene_auto_compact", "sh1_compact"):
+        _write_run(tmp_path / "runs", name, 0, 30.0, 10.0)
+    conf = tmp_path / "conf"
+    (conf / "preset").mkdir(parents=True)
+    (conf / "preset" / "small.yaml").write_text("# @package _global_\ndefaults:\n  - /tradeoff/sh1\n  - _self_\n")
+    (conf / "preset" / "tiny.yaml").write_text("defaults:\n  - /tradeoff: sh0\nfoo: 1\n")
+    (conf / "preset" / "other.yaml").write_text("defaults:\n  - override /corrector: none\n")
+    presets = presets_by_point(conf)
+    assert presets == {"sh1": "small", "sh0": "tiny"}
+    by = {p.label: p for p in build_points(find_runs([tmp_path / "runs"]))}
+    assert paste_steps(by["sh0"], presets) == ("+preset=tiny",)
+    assert paste_steps(by["sh0"], {}) == ("+tradeoff=sh0",)
+    assert paste_steps(by["scene_auto_compact"], presets) == ("+tradeoff=scene_auto", PRUNE_STEP)
+    assert paste_steps(by["sh1_compact"], presets) == ("+preset=small", PRUNE_STEP)
+    assert PRUNE_STEP == "python -m framework.prune ckpt=<run>/checkpoints/final.ckpt"
+    assert presets_by_point(tmp_path / "no_conf_here") == {}
+    # the real config folder is the one Hydra composes from: it holds the trade-off points
+    assert (conf_dir() / "tradeoff" / "baseline.yaml").is_file()
+    assert isinstance(presets_by_point(), dict)
+
+
+def test_runs_without_viewer_fps_fall_back_to_nan(tmp_path: Path) -> None:
+    _write_run(tmp_path, "baseline", 0, 30.0, None)
+    _write_run(tmp_path, "sh0", 0, 29.0, 40.0)
+    _write_run(tmp_path, "sh0", 1, 29.2, None)  # one seed measured: the mean is that seed's
+    by = {p.label: p for p in build_points(find_runs([tmp_path]))}
+    assert math.isnan(by["baseline"].fps) and math.isnan(by["baseline"].fps_torch)
+    assert not by["baseline"].front["fps"]  # NaN is on no front
+    assert by["sh0"].fps == pytest.approx(40.0) and by["sh0"].stats["fps"].n == 1
+    assert recommend(list(by.values()), parse_budget("fps>=30")).label == "sh0"
+    _write_run(tmp_path / "old", "baseline", 0, 30.0, None)
+    out = tmp_path / "report"
+    report([tmp_path / "old"], kind="tradeoff", out=out)
+    markdown = (out / "tradeoff.md").read_text()
+    row = next(line for line in markdown.splitlines() if line.startswith("| baseline"))
+    assert [c.strip() for c in row.split("|")[1:-1]][4:6] == ["-", "-"]
+    assert "no run has viewer_fps" in markdown
+    rec = next(line for line in markdown.splitlines() if line.startswith("| `fps>=30`"))
+    assert [c.strip() for c in rec.split("|")[1:3]] == ["`fps>=30`", NONE_MEETS]
 
 
 def test_budget_flag_belongs_to_the_tradeoff_report(sweep: Path) -> None:
