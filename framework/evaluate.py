@@ -3,13 +3,15 @@ numbers) and inside the image of the body's 3D box (the Neural Body / Animatable
 `framework.evaluation.body_box`) when the dataset knows the body's vertices.
 
 `python -m framework.evaluate ckpt=PATH [splits=[novel_view,novel_pose]] [metrics=[psnr,ssim,lpips_alex]]`
-writes `per_frame.csv` and `summary.md` and prints the summary table. Also run at the end of training.
-Summary keys: "<split>/<metric>" (whole image) and "<split>/bbox/<metric>" (body box).
+writes `per_frame.csv`, `summary.json` and `summary.md` and prints the summary table. Also run at the end of training.
+Summary keys: "<split>/<metric>" (whole image) and "<split>/bbox/<metric>" (body box); summary.json holds them as
+evaluate_module returns them, for tools that read an evaluation back (tools/compact_point.py).
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 import sys
 from pathlib import Path
@@ -50,7 +52,8 @@ def evaluate_module(
     step: int = 0,
     save_images: int = 4,
 ) -> dict[str, float]:
-    """Returns {"<split>/<metric>": mean}; writes per_frame.csv, summary.md and a few render|gt|error PNGs."""
+    """Returns {"<split>/<metric>": mean}; writes per_frame.csv, summary.json (the returned dict), summary.md and a
+    few render|gt|error PNGs."""
     import imageio.v3 as iio
 
     from framework.lightning.data import collate_frames
@@ -106,6 +109,7 @@ def evaluate_module(
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1) + "\n")
     table = summary_table(summary, splits, list(metrics))
     atomic_write_text(out_dir / "summary.md", table + "\n")  # written last: its presence marks a finished evaluation
     print("\n" + table)

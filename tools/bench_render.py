@@ -93,6 +93,34 @@ def frame_batch(cams: Cameras, pose: torch.Tensor, i: int, res: int, device: str
     )
 
 
+def orbit_and_poses(avatar: Avatar, res: int, device: str) -> tuple[Cameras, torch.Tensor]:
+    """The timed frames' cameras (16 on an orbit around the body, `res` x `res`) and poses (64 random ones,
+    [64, J, 3], the same for every model: seed 0)."""
+    body = avatar.body
+    center = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
+    cams = orbit_cameras(center.cpu(), 3.0, 0.0, 16, res, res, fov_deg=40).to(device)
+    gen = torch.Generator().manual_seed(0)
+    poses = (0.25 * torch.randn(64, body.num_input_joints, 3, generator=gen)).to(device)
+    return cams, poses
+
+
+def view_and_pose_seconds(
+    avatar: Avatar, sh_degree: int, cams: Cameras, poses: torch.Tensor, device: str, warmup: int, repeats: int
+) -> tuple[float, float]:
+    """(novel-view, novel-pose) median seconds of a whole frame with the avatar's rasterizer: novel view renders the
+    first pose from the orbit's cameras in turn (the posed Gaussians cached), novel pose a new pose every frame."""
+    res = cams.width
+
+    def frame(i: int, novel_pose: bool) -> None:
+        pose = poses[i % len(poses) if novel_pose else 0][None]
+        avatar(frame_batch(cams, pose, i, res, device), sh_degree=sh_degree)
+
+    with torch.no_grad():
+        t_view = time_frames(lambda i: frame(i, False), warmup, repeats, device)
+        t_pose = time_frames(lambda i: frame(i, True), warmup, repeats, device)
+    return t_view, t_pose
+
+
 POSE_PARTS = ("bone transforms", "corrector F_a", "LBS (polar, skinning)", "view colour (SH at R^T d)", "rasterizer")
 
 
@@ -202,12 +230,8 @@ def main() -> None:
         execution = Execution.resolve(kernels, args.device)
         avatar, degree = synthetic_avatar(args.body, args.num, args.device, execution), SYNTHETIC_SH_DEGREE
     avatar.eval()
-    body = avatar.body
-    J = body.num_input_joints
-    center = (body.rest_vertices.min(0).values + body.rest_vertices.max(0).values) / 2
-    cams = orbit_cameras(center.cpu(), 3.0, 0.0, 16, args.resolution, args.resolution, fov_deg=40).to(args.device)
-    gen = torch.Generator().manual_seed(0)
-    poses = (0.25 * torch.randn(64, J, 3, generator=gen)).to(args.device)
+    J = avatar.body.num_input_joints
+    cams, poses = orbit_and_poses(avatar, args.resolution, args.device)
     res = args.resolution
     names = args.backends or [e.name for e in RASTERIZERS if e.unavailable_reason() is None]
     rows, records = [], []
@@ -218,14 +242,7 @@ def main() -> None:
             rows.append((name, "-", "-", reason))
             continue
         avatar.rasterizer = RASTERIZERS.build(name)
-
-        def frame(i: int, novel_pose: bool) -> None:
-            pose = poses[i % len(poses) if novel_pose else 0][None]
-            avatar(frame_batch(cams, pose, i, res, args.device), sh_degree=degree)
-
-        with torch.no_grad():
-            t_view = time_frames(lambda i: frame(i, False), args.warmup, args.repeats, args.device)
-            t_pose = time_frames(lambda i: frame(i, True), args.warmup, args.repeats, args.device)
+        t_view, t_pose = view_and_pose_seconds(avatar, degree, cams, poses, args.device, args.warmup, args.repeats)
         view_ms[name] = t_view * 1e3
         rows.append((name, f"{1 / t_view:.1f}", f"{1 / t_pose:.1f}", ""))
         records.append({"backend": name, "novel_view_fps": 1 / t_view, "novel_pose_fps": 1 / t_pose})

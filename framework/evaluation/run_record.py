@@ -28,6 +28,20 @@ written before the cost fields existed lack them; readers treat a missing field 
                     over the split's images; e.g. metrics["novel_pose"]["body_box"]["psnr"]
     code            {"version": package version, "commit": git commit of the checkout or null}
     created         ISO 8601 time the record was written
+
+Fields added after training (`record_field`; each one's name is listed in `recorded_later`):
+
+    metrics[name]   one more evaluation, e.g. novel_pose_true_poses (tools/record_true_poses.py; `record_metrics`)
+    viewer_fps      {"resolution", "device", "warmup", "frames", "num_gaussians", "sh_degree",
+                    "paths": {"compiled"|"torch": {"novel_pose": fps, "novel_view": fps}}}: the viewer's frame rate
+                    at a square resolution on orbit cameras and random poses (tools/record_fps.py, bench_render's
+                    rules): compiled = the compiled CPU kernels and the numba rasterizer, torch = the torch execution
+                    and torch_ref (a GPU's torch code on this device); a path whose rasterizer is unavailable holds
+                    null fps and its reason
+    recorded_later  the names above that this record holds, in the order they were recorded
+
+A record derived from another run's model (tools/compact_point.py: its final checkpoint pruned and refitted) also
+holds `derived_from` {"run": the parent's folder name, "step": what made the model, "prune_seconds": wall time}.
 """
 
 from __future__ import annotations
@@ -86,16 +100,24 @@ def write_run_record(run_dir: Path, **fields: Any) -> Path:
     return atomic_write_text(Path(run_dir) / FILENAME, json.dumps(record, indent=1) + "\n")
 
 
+def record_field(run_dir: Path, key: str, value: Any, recorded_as: str | None = None) -> Path:
+    """Set one top-level field of a run's results.json to `value` (written atomically; the rest of the record is
+    kept) and list `recorded_as` (default: `key`) in its `recorded_later`, once however often it is recorded."""
+    path = Path(run_dir) / FILENAME
+    record = load_run_record(path)
+    record[key] = value
+    done = record.setdefault("recorded_later", [])
+    name = key if recorded_as is None else recorded_as
+    if name not in done:
+        done.append(name)
+    return atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+
+
 def record_metrics(run_dir: Path, name: str, metrics: dict[str, dict[str, float]]) -> Path:
     """Store one more evaluation in a run's results.json as `metrics[name]` ({region: {metric: value}}), e.g. the
     held-out motion evaluated under another protocol after training; the rest of the record is kept."""
-    path = Path(run_dir) / FILENAME
-    record = load_run_record(path)
-    record.setdefault("metrics", {})[name] = metrics
-    record.setdefault("recorded_later", [])
-    if name not in record["recorded_later"]:
-        record["recorded_later"].append(name)
-    return atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+    stored = load_run_record(Path(run_dir) / FILENAME).get("metrics") or {}
+    return record_field(run_dir, "metrics", {**stored, name: metrics}, recorded_as=name)
 
 
 def load_run_record(path: Path) -> dict[str, Any]:
