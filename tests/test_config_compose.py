@@ -33,8 +33,8 @@ def _groups() -> list[str]:
     return sorted(
         p.name
         for p in root.iterdir()
-        # experiments, +scene=auto and the trade-off points are appended with +
-        if p.is_dir() and not p.name.startswith("_") and p.name not in ("experiment", "scene", "tradeoff")
+        # experiments, +scene=auto, the trade-off points and the presets are appended with +
+        if p.is_dir() and not p.name.startswith("_") and p.name not in ("experiment", "scene", "tradeoff", "preset")
     )
 
 
