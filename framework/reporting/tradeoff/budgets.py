@@ -50,8 +50,8 @@ def parse_budget(text: str) -> Budget:
 
 
 def recommend(points: list[Point], budget: Budget) -> Point | None:
-    """The measured point with the best mean novel-pose PSNR among those whose mean meets the budget (None when none
-    does). No interpolation between points: a user can only train a config that was measured."""
+    """The measured point with the best mean PSNR (the points' judged split) among those whose mean meets the budget
+    (None when none does). No interpolation between points: a user can only train a config that was measured."""
     meeting = [p for p in points if budget.met_by(p) and not math.isnan(p.psnr)]
     return max(meeting, key=lambda p: (p.psnr, p.label), default=None)
 
@@ -108,7 +108,7 @@ class Recommendation:
     budget: Budget
     point: Point | None  # None: no measured point meets the budget
     paste: tuple[str, ...]  # the commands, in order
-    delta: Difference | None  # novel-pose PSNR minus the baseline's, with its seed noise; None without a baseline
+    delta: Difference | None  # PSNR (judged split) minus the baseline's, with its seed noise; None without a baseline
 
 
 def recommendations(points: list[Point], budgets: list[Budget], presets: Mapping[str, str]) -> list[Recommendation]:

@@ -1,5 +1,5 @@
 """Speed per dB lost: for each single-knob point, how much training and viewer speed it buys against the baseline per
-dB of novel-pose PSNR it costs, so the knobs worth turning first come first."""
+dB of novel-pose PSNR (the points' judged split) it costs, so the knobs worth turning first come first."""
 
 from __future__ import annotations
 

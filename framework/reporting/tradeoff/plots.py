@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from framework.reporting.tradeoff.points import Objective, Point
+from framework.reporting.tradeoff.points import Objective, Point, points_split, psnr_label
 
 
 def _err(values: list[float]) -> list[float]:
@@ -58,7 +58,8 @@ def figure(points: list[Point], objective: Objective):
         ax.set_xscale("log")
     better = "right is better" if objective.maximise else "left is better"
     ax.set_xlabel(f"{objective.label} ({better})", fontsize=8)
-    ax.set_ylabel("novel-pose PSNR (dB)", fontsize=8)
+    split = points_split(points)
+    ax.set_ylabel(f"{psnr_label(split)} (dB)", fontsize=8)
     ax.ticklabel_format(axis="y", useOffset=False)
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3)
