@@ -8,7 +8,8 @@ Why not `hydra/launcher=submitit_local`: it gives each job its own process (so p
 starts every job of the sweep at once, so on a small machine the jobs share its cores and their training times
 measure the crowd, not the point. Here a job starts when the one before has ended. Finished jobs (a results.json in
 `<part>/<point>_seed<s>/`) are skipped, so an interrupted part continues where it stopped; `touch <part>/STOP` ends
-the part after the running job.
+the part after the running job. `--true-poses` also scores each run on the realistic studio's true poses, the split
+the trade-off report then judges novel poses on.
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweep", default="tradeoff", help="the sweep's config name (sweeps/<name>.yaml)")
     ap.add_argument("--group", default="tradeoff", help="the config group the points are options of")
     ap.add_argument("--no-fps", action="store_true", help="skip tools/record_fps.py after each job")
+    ap.add_argument(
+        "--true-poses",
+        action="store_true",
+        help="after each job, also score the held-out motion on the studio's true poses (tools/record_true_poses.py)",
+    )
     ap.add_argument("overrides", nargs="*", help="Hydra overrides for every job (after --)")
     args = ap.parse_args(argv)
     part = args.part.resolve()
@@ -66,8 +72,11 @@ def main(argv: list[str] | None = None) -> int:
             minutes = (time.monotonic() - start) / 60
             status = "ok" if done.returncode == 0 else f"failed (exit {done.returncode}; see {log})"
             print(f"[{i}/{len(jobs)}] {run.name}: {status}, {minutes:.1f} min", flush=True)
-        if not args.no_fps and (run / "results.json").is_file():
-            subprocess.run([sys.executable, str(TOOLS / "record_fps.py"), str(run)], check=False)
+        if (run / "results.json").is_file():
+            after = [] if args.no_fps else ["record_fps.py"]
+            after += ["record_true_poses.py"] if args.true_poses else []
+            for tool in after:  # each skips a run that already holds its field
+                subprocess.run([sys.executable, str(TOOLS / tool), str(run)], check=False)
     return 0
 
 
