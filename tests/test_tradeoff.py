@@ -238,6 +238,7 @@ def test_report_end_to_end(sweep: Path, capsys) -> None:
         "tradeoff_train_time.png",
         "tradeoff_memory.png",
         "tradeoff_model_size.png",
+        "tradeoff_overview.png",
     ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     assert any((out / "tb").rglob("events.out.tfevents.*"))

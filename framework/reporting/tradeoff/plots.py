@@ -13,17 +13,40 @@ def _err(values: list[float]) -> list[float]:
     return [0.0 if math.isnan(v) else v for v in values]
 
 
-def figure(points: list[Point], objective: Objective):
-    """Novel-pose PSNR against one objective, with error bars (std over seeds) on both axes; the front of that plane
-    joined by a line, its members filled when they are on every seed's front and hollow when not; every point
-    labelled."""
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def figure(points: list[Point], objective: Objective):
+    """Novel-pose PSNR against one objective (see `draw`), one figure."""
+    fig, ax = _pyplot().subplots(figsize=(5.0, 3.8))
+    draw(ax, points, objective)
+    fig.tight_layout()
+    return fig
+
+
+def overview(points: list[Point], objectives: tuple[Objective, ...]):
+    """The planes side by side in one 2-column figure: the picture a README shows."""
+    rows = math.ceil(len(objectives) / 2)
+    fig, axes = _pyplot().subplots(rows, 2, figsize=(9.0, 3.4 * rows), sharey=True, squeeze=False)
+    for ax, objective in zip(axes.flat, objectives, strict=False):
+        draw(ax, points, objective)
+    for ax in list(axes.flat)[len(objectives) :]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    return fig
+
+
+def draw(ax, points: list[Point], objective: Objective) -> None:
+    """Novel-pose PSNR against one objective on `ax`, with error bars (std over seeds) on both axes; the front of that
+    plane joined by a line, its members filled when they are on every seed's front and hollow when not; every point
+    labelled."""
     key = objective.key
-    fig, ax = plt.subplots(figsize=(5.0, 3.8))
     shown = [p for p in points if not math.isnan(p.psnr) and not math.isnan(getattr(p, key))]
     ax.errorbar(
         [getattr(p, key) for p in shown],
@@ -65,5 +88,3 @@ def figure(points: list[Point], objective: Objective):
     ax.grid(alpha=0.3)
     if shown:
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    return fig

@@ -10,14 +10,16 @@ from framework.reporting.figures import save_png
 from framework.reporting.runs import Run
 from framework.reporting.tradeoff.budgets import DEFAULT_BUDGETS, parse_budget, presets_by_point, recommendations
 from framework.reporting.tradeoff.gains import knob_gains
-from framework.reporting.tradeoff.plots import figure
-from framework.reporting.tradeoff.points import PLANES, build_points
+from framework.reporting.tradeoff.plots import figure, overview
+from framework.reporting.tradeoff.points import OBJECTIVES, PLANES, build_points
 from framework.reporting.tradeoff.text import recommendations_csv, to_csv, to_markdown
+
+OVERVIEW = "tradeoff_overview.png"  # the four objectives' planes in one picture
 
 
 def write_report(runs: list[Run], out_dir: Path, budgets: list[str] | None = None) -> tuple[str, list[Path]]:
-    """tradeoff.md, tradeoff.csv, recommendations.csv, tradeoff_<plane>.png and a TensorBoard log (tb/) in
-    `out_dir`."""
+    """tradeoff.md, tradeoff.csv, recommendations.csv, tradeoff_<plane>.png, tradeoff_overview.png and a TensorBoard
+    log (tb/) in `out_dir`."""
     import matplotlib.pyplot as plt
     from torch.utils.tensorboard import SummaryWriter
 
@@ -38,5 +40,8 @@ def write_report(runs: list[Run], out_dir: Path, budgets: list[str] | None = Non
             paths.append(save_png(fig, out_dir / objective.file, dpi=100))
             writer.add_figure(f"tradeoff/{Path(objective.file).stem}", fig, close=False)
             plt.close(fig)
+        fig = overview(points, OBJECTIVES)
+        paths.append(save_png(fig, out_dir / OVERVIEW, dpi=100))
+        plt.close(fig)
     paths.append(out_dir / "tb")
     return markdown, paths
