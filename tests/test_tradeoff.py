@@ -569,6 +569,7 @@ KNOBS = {
     "preset_realtime": {"corrector.", "gaussians.sh_degree", *BUDGET},
     "preset_small": {"gaussians.sh_degree", *BUDGET},
     "preset_quick": {"deformer.", "data.split_overrides.", *SCHEDULE},
+    "preset_lean": {*SCHEDULE, *BUDGET},
     "scene_auto": {"scene."},  # the choices themselves are made at run time, from the survey
 }
 
