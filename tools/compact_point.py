@@ -153,6 +153,11 @@ def _last_line(log: Path) -> str:
     return lines[-1] if lines else "(no output)"
 
 
+def entry_point(verb: str, *overrides: str) -> list[str]:
+    """The command line of `python -m framework.<verb> key=value ...` in this interpreter."""
+    return [sys.executable, "-m", f"framework.{verb}", *overrides]
+
+
 def compact_run(run: Path, record: dict[str, Any], point: str, extra: list[str]) -> str:
     """Prune, evaluate and record one run; returns a one-line status."""
     from framework.evaluation.run_record import metrics_from_summary, write_run_record
@@ -160,39 +165,33 @@ def compact_run(run: Path, record: dict[str, Any], point: str, extra: list[str])
     out = compact_folder(run, point, int(record["seed"])).resolve()
     ckpt = out / "checkpoints" / "final.ckpt"
     measure = [] if any(x.split("=", 1)[0] == "measure" for x in extra) else ["measure=false"]
-    prune_cmd = [
-        sys.executable,
-        "-m",
-        "framework.prune",
-        f"ckpt={(run / 'checkpoints' / 'final.ckpt').resolve()}",
-        f"out={ckpt}",
-        f"json={out / 'prune.json'}",
-        *measure,
-        *extra,
-    ]
-    prune = run_measured(prune_cmd, out / "prune.log")
-    if prune.returncode != 0:
-        return f"prune failed ({out / 'prune.log'}): {_last_line(out / 'prune.log')}"
-    eval_cmd = [
-        sys.executable,
-        "-m",
-        "framework.evaluate",
-        f"ckpt={ckpt}",
-        f"splits={SPLITS}",
-        f"out_dir={out / 'eval'}",
-    ]
-    evaluation = run_measured(eval_cmd, out / "evaluate.log")
-    if evaluation.returncode != 0:
-        return f"evaluate failed ({out / 'evaluate.log'}): {_last_line(out / 'evaluate.log')}"
+    steps = {
+        "prune": entry_point(
+            "prune",
+            f"ckpt={(run / 'checkpoints' / 'final.ckpt').resolve()}",
+            f"out={ckpt}",
+            f"json={out / 'prune.json'}",
+            *measure,
+            *extra,
+        ),
+        "evaluate": entry_point("evaluate", f"ckpt={ckpt}", f"splits={SPLITS}", f"out_dir={out / 'eval'}"),
+    }
+    measured: dict[str, Measured] = {}
+    for name, cmd in steps.items():  # in order: the evaluation reads the pruned checkpoint
+        log = out / f"{name}.log"
+        measured[name] = run_measured(cmd, log)
+        if measured[name].returncode != 0:
+            return f"{name} failed ({log}): {_last_line(log)}"
     summary = json.loads((out / "eval" / "summary.json").read_text())
     report = json.loads((out / "prune.json").read_text())
     refit_steps = (report.get("refit") or {}).get("steps", 0)
+    prune = measured["prune"]
     fields = compact_record(
         record,
         run.name,
         point,
         prune,
-        evaluation.seconds,
+        measured["evaluate"].seconds,
         pruned_model(ckpt),
         metrics_from_summary(summary),
         refit_steps,

@@ -11,14 +11,13 @@ rows (e.g. paper_full with the paper's alpha norm) sit beside the Table 4 rows, 
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from framework.atomic import atomic_write_text
 from framework.plugins import format_table
+from framework.reporting.csv_text import csv_text
 from framework.reporting.figures import save_png
 from framework.reporting.runs import ReportError, Run, group_runs
 from framework.reporting.stats import Difference, Spread, difference, spread, verdict
@@ -224,45 +223,27 @@ def to_markdown(table: Table4, title: str = "Table 4 (ablations), reproduced") -
 
 
 def to_csv(table: Table4) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(
-        [
-            "region",
-            "row",
-            "experiment",
-            "split",
-            "metric",
-            "n",
-            "seeds",
-            "mean",
-            "std",
-            "delta",
-            "sigma",
-            "paper_delta",
-            "verdict",
-        ]
+    header = ("region", "row", "experiment", "split", "metric", "n", "seeds", "mean", "std", "delta", "sigma")
+    rows = (
+        (
+            region,
+            row.label,
+            row.experiment,
+            split,
+            metric,
+            c.value.n,
+            " ".join(map(str, row.seeds)),
+            c.value.mean,
+            c.value.std,
+            "" if c.diff is None else c.diff.delta,
+            "" if c.diff is None else c.diff.sigma,
+            "" if c.paper_delta is None else c.paper_delta,
+            c.verdict or "",
+        )
+        for row in table.rows
+        for (region, split, metric), c in row.cells.items()
     )
-    for row in table.rows:
-        for (region, split, metric), c in row.cells.items():
-            w.writerow(
-                [
-                    region,
-                    row.label,
-                    row.experiment,
-                    split,
-                    metric,
-                    c.value.n,
-                    " ".join(map(str, row.seeds)),
-                    c.value.mean,
-                    c.value.std,
-                    "" if c.diff is None else c.diff.delta,
-                    "" if c.diff is None else c.diff.sigma,
-                    "" if c.paper_delta is None else c.paper_delta,
-                    c.verdict or "",
-                ]
-            )
-    return buf.getvalue()
+    return csv_text((*header, "paper_delta", "verdict"), rows)
 
 
 # ----------------------------------------------------------------------------------------------------- chart

@@ -3,11 +3,10 @@ budget, speed per dB lost) and the two CSVs (points, recommendations)."""
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 
 from framework.plugins import format_table
+from framework.reporting.csv_text import csv_text
 from framework.reporting.runs import Run
 from framework.reporting.stats import Difference
 from framework.reporting.tradeoff.budgets import Recommendation
@@ -251,77 +250,70 @@ def to_csv(points: list[Point]) -> str:
     """One row per point; `psnr` is on the split in `psnr_split`, the side PSNRs are those the table shows."""
     split = points_split(points)
     shown = tuple(k for k in QUANTITIES if k not in SIDE_PSNRS or k in side_psnrs(split))
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(
-        [
-            "point",
-            "seeds",
-            "on_front",
-            "front_seed_unstable",
-            *shown,
-            *(f"{k}_std" for k in shown),
-            *(f"front_{o.key}" for o in PLANES),
-            *(f"seed_unstable_{o.key}" for o in PLANES),
-            "psnr_split",
-        ]
+    header = (
+        "point",
+        "seeds",
+        "on_front",
+        "front_seed_unstable",
+        *shown,
+        *(f"{k}_std" for k in shown),
+        *(f"front_{o.key}" for o in PLANES),
+        *(f"seed_unstable_{o.key}" for o in PLANES),
+        "psnr_split",
     )
-    for p in points:
-        w.writerow(
-            [
-                p.label,
-                " ".join(map(str, p.seeds)),
-                int(p.on_front),
-                int(p.seed_unstable[ALL]),
-                *(p.stats[k].mean for k in shown),
-                *(p.std(k) for k in shown),
-                *(int(p.front[o.key]) for o in PLANES),
-                *(int(p.seed_unstable[o.key]) for o in PLANES),
-                p.split,
-            ]
+    rows = (
+        (
+            p.label,
+            " ".join(map(str, p.seeds)),
+            int(p.on_front),
+            int(p.seed_unstable[ALL]),
+            *(p.stats[k].mean for k in shown),
+            *(p.std(k) for k in shown),
+            *(int(p.front[o.key]) for o in PLANES),
+            *(int(p.seed_unstable[o.key]) for o in PLANES),
+            p.split,
         )
-    return buf.getvalue()
+        for p in points
+    )
+    return csv_text(header, rows)
+
+
+RECOMMENDATION_COLUMNS = (
+    "budget",
+    "point",
+    "config",
+    "psnr",
+    "psnr_std",
+    "delta_db",
+    "delta_sigma",
+    "train_min",
+    "fps",
+    "fps_torch",
+    "seeds",
+    "psnr_split",
+)
+
+
+def _recommendation_row(r: Recommendation) -> tuple[object, ...]:
+    p = r.point
+    if p is None:
+        return (str(r.budget), NONE_MEETS, *[""] * (len(RECOMMENDATION_COLUMNS) - 2))
+    d = r.delta or Difference(math.nan, math.nan)
+    return (
+        str(r.budget),
+        p.label,
+        " ; then ".join(r.paste),
+        p.psnr,
+        p.std("psnr"),
+        d.delta,
+        d.sigma,
+        p.train_min,
+        p.fps,
+        p.fps_torch,
+        " ".join(map(str, p.seeds)),
+        p.split,
+    )
 
 
 def recommendations_csv(recs: list[Recommendation]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(
-        [
-            "budget",
-            "point",
-            "config",
-            "psnr",
-            "psnr_std",
-            "delta_db",
-            "delta_sigma",
-            "train_min",
-            "fps",
-            "fps_torch",
-            "seeds",
-            "psnr_split",
-        ]
-    )
-    for r in recs:
-        p = r.point
-        if p is None:
-            w.writerow([str(r.budget), NONE_MEETS, *[""] * 10])
-            continue
-        d = r.delta or Difference(math.nan, math.nan)
-        w.writerow(
-            [
-                str(r.budget),
-                p.label,
-                " ; then ".join(r.paste),
-                p.psnr,
-                p.std("psnr"),
-                d.delta,
-                d.sigma,
-                p.train_min,
-                p.fps,
-                p.fps_torch,
-                " ".join(map(str, p.seeds)),
-                p.split,
-            ]
-        )
-    return buf.getvalue()
+    return csv_text(RECOMMENDATION_COLUMNS, map(_recommendation_row, recs))
