@@ -15,7 +15,7 @@ import pytest
 
 from framework.evaluation.run_record import SCHEMA, load_run_record, metrics_from_summary, write_run_record
 from framework.reporting.runs import ReportError, find_runs, variant_of
-from framework.reporting.stats import Spread, difference, spread, verdict
+from framework.reporting.stats import Spread, against_reference, difference, spread, verdict
 from framework.reporting.table4 import PAPER, build_table, write_report
 
 SHARED = ["data=synthetic_studio_realistic", "profile=ablation"]
@@ -79,6 +79,49 @@ def test_statistics_closed_forms():
     assert verdict(difference(Spread(29.0, 0.2, 3), Spread(30.0, 0.2, 3)), 0.0) == "disagrees"
     assert verdict(difference(Spread(29.0, float("nan"), 1), Spread(30.0, 0.2, 3)), -1.0) == "needs 2 seeds"
     assert verdict(d, None) is None
+
+
+def test_rows_outside_the_papers_table_are_judged_against_the_reference_alone():
+    assert against_reference(difference(Spread(31.0, 0.2, 3), Spread(30.0, 0.2, 3))) == "better"
+    assert against_reference(difference(Spread(29.0, 0.2, 3), Spread(30.0, 0.2, 3))) == "worse"
+    assert against_reference(difference(Spread(30.2, 0.2, 3), Spread(30.0, 0.2, 3))) == "within noise"  # 0.2 < 2σ
+    assert against_reference(difference(Spread(31.0, float("nan"), 1), Spread(30.0, 0.2, 3))) == "needs 2 seeds"
+
+
+def test_paper_forms_report_judges_each_form_against_paper_full(tmp_path):
+    """kind=paper_forms: the project's forms are not Table 4 rows, so each is better / worse / within noise."""
+    from framework.reporting.kinds import REPORT_KINDS
+
+    forms = {"paper_full": 0.0, "paper_full_alpha_l1": -1.0, "paper_full_half_dssim": 0.05, "splatrig_full": 1.0}
+    for experiment, shift in forms.items():
+        for s, noise in enumerate((0.0, 0.2, -0.2)):
+            summary = {"novel_view/psnr": 30.0 + shift + noise, "novel_pose/psnr": 29.0 + shift + noise}
+            write_run_record(
+                tmp_path / "runs" / f"{experiment}{s}",
+                experiment=experiment,
+                config_name="paper_forms",
+                overrides=[f"+experiment={experiment}", f"seed={s}", *SHARED],
+                seed=s,
+                profile="ablation",
+                data="synthetic_studio",
+                steps=10,
+                max_steps=10,
+                train_seconds=1.0,
+                run_seconds=1.0,
+                num_gaussians=10,
+                metrics=metrics_from_summary(summary),
+            )
+    markdown, _ = REPORT_KINDS["paper_forms"](find_runs([tmp_path / "runs"]), tmp_path / "out")
+    assert markdown.startswith("# The project's forms against the paper's")
+    lines = list(csv.DictReader(io.StringIO((tmp_path / "out" / "paper_forms.csv").read_text())))
+    judged = {r["experiment"]: r["verdict"] for r in lines if r["metric"] == "psnr" and r["region"] == "image"}
+    assert judged == {
+        "paper_full": "",
+        "paper_full_alpha_l1": "worse",
+        "paper_full_half_dssim": "within noise",
+        "splatrig_full": "better",
+    }
+    assert (tmp_path / "out" / "paper_forms.png").is_file()
 
 
 def test_paper_ssim_and_lpips_deltas_where_the_paper_gives_them(tmp_path):

@@ -1,5 +1,5 @@
 """Seed statistics: mean and spread of a cell, a difference between two cells and its noise, and the verdict that
-compares our difference with the paper's."""
+compares our difference with the paper's (or, for a row the paper does not have, with no change)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 AGREES, DISAGREES, WITHIN_NOISE, TOO_FEW = "agrees", "disagrees", "within noise", "needs 2 seeds"
+BETTER, WORSE = "better", "worse"
 
 
 @dataclass(frozen=True)
@@ -60,3 +61,14 @@ def verdict(ours: Difference, paper_delta: float | None) -> str | None:
     if not significant:
         return WITHIN_NOISE
     return AGREES if (ours.delta > 0) == (paper_delta > 0) else DISAGREES
+
+
+def against_reference(ours: Difference) -> str:
+    """A row the paper has no number for (one of the project's forms, an extra variant) against the reference, on a
+    metric where higher is better: better / worse beyond 2 sigma, otherwise within noise; needs 2 seeds when the
+    spread is unknown."""
+    if math.isnan(ours.sigma) or math.isnan(ours.delta):
+        return TOO_FEW
+    if abs(ours.delta) <= 2 * ours.sigma:
+        return WITHIN_NOISE
+    return BETTER if ours.delta > 0 else WORSE

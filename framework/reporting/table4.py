@@ -20,7 +20,7 @@ from framework.plugins import format_table
 from framework.reporting.csv_text import csv_text
 from framework.reporting.figures import save_png
 from framework.reporting.runs import ReportError, Run, group_runs
-from framework.reporting.stats import Difference, Spread, difference, spread, verdict
+from framework.reporting.stats import Difference, Spread, against_reference, difference, spread, verdict
 
 REFERENCE = "paper_full"
 SPLITS = (("novel_view", "novel view"), ("novel_pose", "novel pose"))
@@ -159,7 +159,9 @@ def build_table(runs: list[Run]) -> Table4:
                         continue
                     diff = difference(value, cell_values(ref_runs, region, split, metric))
                     delta = paper_delta(experiment, split, metric) if paper is not None else None
-                    judged = verdict(diff, delta) if metric == "psnr" else None
+                    judged = None
+                    if metric == "psnr":
+                        judged = verdict(diff, delta) if paper is not None else against_reference(diff)
                     cells[(region, split, metric)] = Cell(value, diff, delta, judged)
         rows.append(
             Row(own[v], experiment, _label(experiment, extras(v)), paper, tuple(sorted(r.seed for r in members)), cells)
@@ -212,9 +214,10 @@ def to_markdown(table: Table4, title: str = "Table 4 (ablations), reproduced") -
         "σ = sqrt(s_row²/n_row + s_full²/n_full), the seed noise of the difference of two means. Verdict (PSNR): "
         "**agrees** = same sign as the paper's Δ and |Δ| > 2σ; **disagrees** = opposite sign beyond 2σ (or a change "
         "beyond 2σ where the paper saw none); **within noise** = |Δ| ≤ 2σ (where the paper saw no change, that "
-        "agrees). The paper's SSIM / LPIPS Δs are shown where this report holds the paper's values (complete model, "
-        "only foreground's novel view); verdicts are on PSNR. A body-box "
-        "PSNR Δ equals the whole-image one when both models leave the background exactly black (the background then "
+        "agrees). A row outside the paper's table is judged against the complete model alone: **better** / **worse** "
+        "beyond 2σ, otherwise within noise. The paper's SSIM / LPIPS Δs are shown where this report holds the "
+        "paper's values (complete model, only foreground's novel view); verdicts are on PSNR. A body-box PSNR Δ equals "
+        "the whole-image one when both models leave the background exactly black (the background then "
         "adds the same constant to every row's PSNR); SSIM and LPIPS inside the box do differ.",
     ]
     for region, r_label in REGIONS:
@@ -303,17 +306,20 @@ def log_tensorboard(table: Table4, markdown: str, fig, log_dir: Path) -> None:
                     writer.add_scalar(f"table4/{region}/{split}/{row.label}/delta_psnr", c.diff.delta)
 
 
-def write_report(runs: list[Run], out_dir: Path) -> tuple[str, list[Path]]:
-    """table4.md, table4.csv, table4.png and a TensorBoard log (tb/) in `out_dir`; returns (markdown, paths)."""
+def write_report(
+    runs: list[Run], out_dir: Path, name: str = "table4", title: str = "Table 4 (ablations), reproduced"
+) -> tuple[str, list[Path]]:
+    """<name>.md, <name>.csv, <name>.png and a TensorBoard log (tb/) in `out_dir`; returns (markdown, paths). The
+    paper-forms report is this one under another name and title: its rows are paper_full's variants too."""
     table = build_table(runs)
-    markdown = to_markdown(table)
+    markdown = to_markdown(table, title)
     out_dir = Path(out_dir)
     paths = [
-        atomic_write_text(out_dir / "table4.md", markdown),
-        atomic_write_text(out_dir / "table4.csv", to_csv(table)),
+        atomic_write_text(out_dir / f"{name}.md", markdown),
+        atomic_write_text(out_dir / f"{name}.csv", to_csv(table)),
     ]
     fig = figure(table)
-    paths.append(save_png(fig, out_dir / "table4.png"))
+    paths.append(save_png(fig, out_dir / f"{name}.png"))
     log_tensorboard(table, markdown, fig, out_dir / "tb")
     paths.append(out_dir / "tb")
     import matplotlib.pyplot as plt
