@@ -133,9 +133,15 @@ def test_each_of_our_forms_changes_one_key(experiment: str):
 def test_splatrig_full_is_all_of_our_forms_together():
     union = {k: v for form in OUR_FORMS.values() for k, v in form.items()}
     assert changed_keys("splatrig_full") == union
-    assert _sweep_list("paper_forms") == ["paper_full", *OUR_FORMS, "splatrig_full"]
+    assert _sweep_list("paper_forms") == ["paper_full", *OUR_FORMS, "splatrig_full", "splatrig_deformer"]
     sweep = OmegaConf.load(ROOT / "sweeps" / "paper_forms.yaml").hydra.sweeper.params
     assert str(sweep.seed) == "0,1,2" and sweep.data == "synthetic_studio_realistic"
+
+
+def test_splatrig_deformer_is_our_two_lbs_forms_and_nothing_else():
+    """The project's forms that each beat the paper's alone (the LBS ones), on paper_full's losses and schedule."""
+    lbs_forms = ("paper_full_softmax_weights", "paper_full_blended_centres")
+    assert changed_keys("splatrig_deformer") == {k: v for form in lbs_forms for k, v in OUR_FORMS[form].items()}
 
 
 def test_lpips_variant_is_the_papers_w_lp_not_a_table4_row():
