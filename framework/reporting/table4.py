@@ -273,19 +273,20 @@ def figure(table: Table4):
                 label=f"ours, {r_label} (±2σ)",
             )
         paper = [r.cells[("image", split, "psnr")].paper_delta for r in rows]
-        ax.bar(
-            [x + width for x in xs],
-            [math.nan if p is None else p for p in paper],
-            width,
-            color="0.55",
-            label="paper (ZJU-MoCap 313)",
-        )
+        if any(p is not None for p in paper):  # rows outside the paper's table have no bar to draw
+            ax.bar(
+                [x + width for x in xs],
+                [math.nan if p is None else p for p in paper],
+                width,
+                color="0.55",
+                label="paper (ZJU-MoCap 313)",
+            )
         ax.axhline(0.0, color="k", lw=0.8)
         ax.set_xticks(list(xs))
         ax.set_xticklabels(
             [r.experiment if not r.key or r.paper else r.label for r in rows], rotation=60, ha="right", fontsize=8
         )
-        ax.set_title(f"{s_label}: Δ PSNR to {REFERENCE}")
+        ax.set_title(f"{s_label}\nΔ PSNR to {REFERENCE}")
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("Δ PSNR (dB)")
     axes[0].legend(fontsize=8)
