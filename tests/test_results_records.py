@@ -16,6 +16,14 @@ RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 PUBLISHED = (
     ("table4", [RESULTS / "table4_cpu" / "runs"], RESULTS / "table4_cpu" / "table4.csv"),
     ("tradeoff", [RESULTS / "tradeoff_cpu" / "runs"], RESULTS / "tradeoff_cpu" / "tradeoff.csv"),
+    (
+        "paper_forms",  # paper_full's runs are Table 4's
+        [
+            RESULTS / "paper_forms_cpu" / "realistic" / "runs",
+            *(RESULTS / "table4_cpu" / "runs").glob("*/*_paper_full_seed*"),
+        ],
+        RESULTS / "paper_forms_cpu" / "realistic" / "paper_forms.csv",
+    ),
 )
 
 
