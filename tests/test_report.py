@@ -60,6 +60,25 @@ def _write_runs(root: Path, seeds: list[int]) -> None:
             )
 
 
+def _tiny_record(folder: Path, experiment: str, seed: int, summary: dict[str, float], config_name: str) -> None:
+    """A results.json of a 10-step run with the evaluation `summary`, for tests that need only its metrics."""
+    write_run_record(
+        folder,
+        experiment=experiment,
+        config_name=config_name,
+        overrides=[f"+experiment={experiment}", f"seed={seed}", *SHARED],
+        seed=seed,
+        profile="ablation",
+        data="synthetic_studio",
+        steps=10,
+        max_steps=10,
+        train_seconds=1.0,
+        run_seconds=1.0,
+        num_gaussians=10,
+        metrics=metrics_from_summary(summary),
+    )
+
+
 @pytest.fixture()
 def parts(tmp_path: Path) -> list[Path]:
     """The sweep in two parts, as two sweep directories: seeds 0 and 1, then seed 2."""
@@ -96,21 +115,7 @@ def test_paper_forms_report_judges_each_form_against_paper_full(tmp_path):
     for experiment, shift in forms.items():
         for s, noise in enumerate((0.0, 0.2, -0.2)):
             summary = {"novel_view/psnr": 30.0 + shift + noise, "novel_pose/psnr": 29.0 + shift + noise}
-            write_run_record(
-                tmp_path / "runs" / f"{experiment}{s}",
-                experiment=experiment,
-                config_name="paper_forms",
-                overrides=[f"+experiment={experiment}", f"seed={s}", *SHARED],
-                seed=s,
-                profile="ablation",
-                data="synthetic_studio",
-                steps=10,
-                max_steps=10,
-                train_seconds=1.0,
-                run_seconds=1.0,
-                num_gaussians=10,
-                metrics=metrics_from_summary(summary),
-            )
+            _tiny_record(tmp_path / "runs" / f"{experiment}{s}", experiment, s, summary, "paper_forms")
     markdown, _ = REPORT_KINDS["paper_forms"](find_runs([tmp_path / "runs"]), tmp_path / "out")
     assert markdown.startswith("# The project's forms against the paper's")
     lines = list(csv.DictReader(io.StringIO((tmp_path / "out" / "paper_forms.csv").read_text())))
@@ -136,21 +141,7 @@ def test_paper_ssim_and_lpips_deltas_where_the_paper_gives_them(tmp_path):
                 "novel_view/lpips_alex": 0.05,
                 "novel_pose/lpips_alex": 0.06,
             }
-            write_run_record(
-                tmp_path / f"{experiment}{s}",
-                experiment=experiment,
-                config_name="ablations",
-                overrides=[f"+experiment={experiment}", f"seed={s}", *SHARED],
-                seed=s,
-                profile="ablation",
-                data="synthetic_studio",
-                steps=10,
-                max_steps=10,
-                train_seconds=1.0,
-                run_seconds=1.0,
-                num_gaussians=10,
-                metrics=metrics_from_summary(summary),
-            )
+            _tiny_record(tmp_path / f"{experiment}{s}", experiment, s, summary, "ablations")
     rows = {r.experiment: r for r in build_table(find_runs([tmp_path])).rows}
     cells = rows["foreground_only_loss"].cells
     assert cells[("image", "novel_view", "ssim")].paper_delta == pytest.approx(0.291 - 0.989)

@@ -226,7 +226,21 @@ def to_markdown(table: Table4, title: str = "Table 4 (ablations), reproduced") -
 
 
 def to_csv(table: Table4) -> str:
-    header = ("region", "row", "experiment", "split", "metric", "n", "seeds", "mean", "std", "delta", "sigma")
+    header = (
+        "region",
+        "row",
+        "experiment",
+        "split",
+        "metric",
+        "n",
+        "seeds",
+        "mean",
+        "std",
+        "delta",
+        "sigma",
+        "paper_delta",
+        "verdict",
+    )
     rows = (
         (
             region,
@@ -246,7 +260,7 @@ def to_csv(table: Table4) -> str:
         for row in table.rows
         for (region, split, metric), c in row.cells.items()
     )
-    return csv_text((*header, "paper_delta", "verdict"), rows)
+    return csv_text(header, rows)
 
 
 # ----------------------------------------------------------------------------------------------------- chart
